@@ -1,0 +1,1 @@
+"""Arenas: the scenes that robots and props are attached to."""

@@ -1,0 +1,1 @@
+"""Robots and props: each entity owns its MJCF model and its observables."""

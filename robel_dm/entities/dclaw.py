@@ -1,0 +1,113 @@
+"""The D'Claw: a 9-DoF three-finger hand of Dynamixel XH430 servos."""
+
+import dataclasses
+
+import numpy as np
+from dm_control import composer, mjcf
+from dm_control.composer.observation import observable
+
+from robel_dm import assets
+
+# Joints in action order; motor IDs are the digits (robel_facts 3.2, 4.1).
+JOINT_NAMES = (
+  'FFJ10', 'FFJ11', 'FFJ12',
+  'MFJ20', 'MFJ21', 'MFJ22',
+  'THJ30', 'THJ31', 'THJ32',
+)  # fmt: skip
+FINGERTIP_SITE_NAMES = ('FFtip', 'MFtip', 'THtip')
+
+# ROBEL's per-joint velocity limit used by the action clamp, rad/s.
+MAX_JOINT_SPEED = 2 * np.pi / 3
+
+# The claw pose of Turn/Screw resets, also the "nominal" pose of their reward:
+# (top, middle, bottom) per finger, rad.
+RESET_POSE = np.tile([0.0, -np.pi / 3, np.pi / 3], 3)
+
+
+@dataclasses.dataclass(frozen=True)
+class SafetyLimits:
+  """Thresholds of ROBEL's hardware-safety counters (robel_facts 2.3).
+
+  Attributes:
+    position_margin: a joint closer than this to either end of its action
+      range counts as a position violation, rad.
+    max_speed: a joint faster than this counts as a velocity violation, rad/s.
+    max_current: a motor drawing more than this counts as a current
+      violation, mA.
+  """
+
+  position_margin: float
+  max_speed: float
+  max_current: float
+
+
+SAFETY_LIMITS = SafetyLimits(
+  position_margin=np.deg2rad(5.0), max_speed=1.0, max_current=200.0
+)
+
+
+class DClaw(composer.Robot):
+  """The D'Claw hand, hanging from its mount point (the model's origin)."""
+
+  def _build(self, name: str = 'dclaw') -> None:
+    """Loads the model.
+
+    Args:
+      name: model name; it prefixes element names and observable keys.
+    """
+    self._mjcf_root = mjcf.from_path(str(assets.xml_path('dclaw', 'dclaw.xml')))
+    self._mjcf_root.model = name
+    self._joints = tuple(
+      self._mjcf_root.find('joint', joint) for joint in JOINT_NAMES
+    )
+    self._actuators = tuple(
+      self._mjcf_root.find('actuator', joint) for joint in JOINT_NAMES
+    )
+    self._fingertip_sites = tuple(
+      self._mjcf_root.find('site', site) for site in FINGERTIP_SITE_NAMES
+    )
+
+  def _build_observables(self) -> 'DClawObservables':
+    return DClawObservables(self)
+
+  @property
+  def mjcf_model(self) -> mjcf.RootElement:
+    return self._mjcf_root
+
+  @property
+  def joints(self) -> tuple[mjcf.Element, ...]:
+    """The 9 hinge joints, in action order."""
+    return self._joints
+
+  @property
+  def actuators(self) -> tuple[mjcf.Element, ...]:
+    """The 9 position actuators, in action order."""
+    return self._actuators
+
+  @property
+  def fingertip_sites(self) -> tuple[mjcf.Element, ...]:
+    return self._fingertip_sites
+
+  @property
+  def max_joint_speed(self) -> float:
+    return MAX_JOINT_SPEED
+
+  @property
+  def safety_limits(self) -> SafetyLimits:
+    return SAFETY_LIMITS
+
+
+class DClawObservables(composer.Observables):
+  """Joint-space observables of the D'Claw (disabled until a task enables)."""
+
+  @composer.observable
+  def joints_pos(self):
+    return observable.MJCFFeature('qpos', self._entity.joints)
+
+  @composer.observable
+  def joints_vel(self):
+    return observable.MJCFFeature('qvel', self._entity.joints)
+
+  @composer.observable
+  def fingertips_pos(self):
+    return observable.MJCFFeature('xpos', self._entity.fingertip_sites)

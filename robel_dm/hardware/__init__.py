@@ -1,0 +1,1 @@
+"""Real-robot support (Dynamixel bus and hardware physics); see issue #4."""

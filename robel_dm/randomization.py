@@ -1,0 +1,198 @@
+"""Per-episode dynamics randomization on the compiled model.
+
+Every range ROBEL randomizes lives here, as data (robel_facts 2.1-2.4, 6). The
+randomizer writes the compiled `MjModel` in place with one vectorized write per
+quantity, always relative to a nominal snapshot taken after compilation, so
+draws never compound across episodes and the MJCF is never recompiled.
+"""
+
+import dataclasses
+
+import mujoco
+import numpy as np
+from dm_control import mjcf
+
+# ROBEL draws geom friction as absolute values meant for its default
+# (metal) friction; robel_dm applies the draw as a factor relative to this
+# reference so that low-friction plastic parts keep their ratio to the rest.
+REFERENCE_FRICTION = np.array([1.0, 0.005, 0.0001])
+
+
+@dataclasses.dataclass(frozen=True)
+class Range:
+  """A uniform range U(low, high); `low` and `high` may be arrays."""
+
+  low: float | tuple[float, ...]
+  high: float | tuple[float, ...]
+
+  def __post_init__(self):
+    if np.any(np.asarray(self.low) > np.asarray(self.high)):
+      raise ValueError(f'empty range: low {self.low} > high {self.high}')
+
+  def sample(
+    self, random_state: np.random.RandomState, size=None
+  ) -> np.ndarray:
+    return random_state.uniform(self.low, self.high, size)
+
+  def contains(self, values) -> bool:
+    values = np.asarray(values)
+    return bool(np.all((values >= self.low) & (values <= self.high)))
+
+
+@dataclasses.dataclass(frozen=True)
+class DynamicsRanges:
+  """What a RandomDynamics variant randomizes. `None` leaves it nominal.
+
+  Attributes:
+    damping: joint damping, N m s/rad.
+    damping_shared: one draw for all joints (else one per joint).
+    friction_loss: joint friction loss, N m.
+    friction_loss_shared: one draw for all joints (else one per joint).
+    actuator_kp: position gain of every actuator, one draw, N m/rad.
+    geom_friction: (slide, spin, roll) friction, one draw for all geoms,
+      applied relative to `REFERENCE_FRICTION`.
+    mount_offset: offset of the robot mount from nominal, per axis, m.
+    color: RGB of decorated geoms, per geom and channel.
+    total_mass: total mass of the model, kg.
+  """
+
+  damping: Range | None = None
+  damping_shared: bool = False
+  friction_loss: Range | None = None
+  friction_loss_shared: bool = False
+  actuator_kp: Range | None = None
+  geom_friction: Range | None = None
+  mount_offset: Range | None = None
+  color: Range | None = None
+  total_mass: Range | None = None
+
+
+# --- ROBEL's ranges --------------------------------------------------------
+
+_ROBEL_GEOM_FRICTION = Range(low=(0.8, 0.003, 5e-5), high=(1.2, 0.007, 1.5e-4))
+
+DCLAW_POSE = DynamicsRanges(
+  damping=Range(0.005, 0.1),
+  friction_loss=Range(0.001, 0.005),
+  actuator_kp=Range(1.0, 3.0),
+)
+
+DCLAW_VALVE = dataclasses.replace(
+  DCLAW_POSE,
+  geom_friction=_ROBEL_GEOM_FRICTION,
+  mount_offset=Range(-0.01, 0.01),
+  color=Range(0.2, 0.9),
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class Targets:
+  """The model elements a randomizer acts on.
+
+  Attributes:
+    joints: joints whose damping and friction loss vary.
+    actuators: position actuators whose gain varies.
+    mount: body whose position is perturbed.
+    colored_geoms: geoms whose colour varies.
+  """
+
+  joints: tuple[mjcf.Element, ...] = ()
+  actuators: tuple[mjcf.Element, ...] = ()
+  mount: mjcf.Element | None = None
+  colored_geoms: tuple[mjcf.Element, ...] = ()
+
+
+class DynamicsRandomizer:
+  """Applies `DynamicsRanges` to a compiled model at every episode start."""
+
+  def __init__(self, ranges: DynamicsRanges, targets: Targets):
+    self._ranges = ranges
+    self._targets = targets
+    self._nominal = None
+
+  @property
+  def ranges(self) -> DynamicsRanges:
+    return self._ranges
+
+  def after_compile(self, physics: mjcf.Physics) -> None:
+    """Caches model addresses and snapshots the nominal values."""
+    model = physics.model
+    targets = self._targets
+    self._dofs = (
+      physics.bind(targets.joints).dofadr if targets.joints else np.zeros(0)
+    ).astype(int)
+    self._actuators = (
+      physics.bind(targets.actuators).element_id
+      if targets.actuators
+      else np.zeros(0, int)
+    )
+    self._mount = (
+      physics.bind(targets.mount).element_id if targets.mount else None
+    )
+    self._colored = (
+      physics.bind(targets.colored_geoms).element_id
+      if targets.colored_geoms
+      else np.zeros(0, int)
+    )
+    self._nominal = {
+      'dof_damping': model.dof_damping.copy(),
+      'dof_frictionloss': model.dof_frictionloss.copy(),
+      'gainprm': model.actuator_gainprm.copy(),
+      'biasprm': model.actuator_biasprm.copy(),
+      'geom_friction': model.geom_friction.copy(),
+      'body_pos': model.body_pos.copy(),
+      'geom_rgba': model.geom_rgba.copy(),
+      'body_mass': model.body_mass.copy(),
+      'body_inertia': model.body_inertia.copy(),
+    }
+
+  def apply(
+    self, physics: mjcf.Physics, random_state: np.random.RandomState
+  ) -> None:
+    """Draws new dynamics and writes them into the compiled model."""
+    if self._nominal is None:
+      raise RuntimeError('DynamicsRandomizer.after_compile was not called')
+    model = physics.model
+    ranges = self._ranges
+    n_dofs = len(self._dofs)
+    if ranges.damping is not None:
+      size = None if ranges.damping_shared else n_dofs
+      model.dof_damping[self._dofs] = ranges.damping.sample(random_state, size)
+    if ranges.friction_loss is not None:
+      size = None if ranges.friction_loss_shared else n_dofs
+      model.dof_frictionloss[self._dofs] = ranges.friction_loss.sample(
+        random_state, size
+      )
+    if ranges.actuator_kp is not None:
+      # A position servo's force is kp * (ctrl - q): gain and bias together.
+      kp = ranges.actuator_kp.sample(random_state)
+      model.actuator_gainprm[self._actuators, 0] = kp
+      model.actuator_biasprm[self._actuators, 1] = -kp
+    if ranges.geom_friction is not None:
+      factor = ranges.geom_friction.sample(random_state) / REFERENCE_FRICTION
+      np.multiply(
+        self._nominal['geom_friction'], factor, out=model.geom_friction
+      )
+    if ranges.mount_offset is not None and self._mount is not None:
+      model.body_pos[self._mount] = self._nominal['body_pos'][
+        self._mount
+      ] + ranges.mount_offset.sample(random_state, 3)
+    if ranges.color is not None and len(self._colored):
+      model.geom_rgba[self._colored, :3] = ranges.color.sample(
+        random_state, (len(self._colored), 3)
+      )
+    if ranges.total_mass is not None:
+      # mj_setTotalmass scales the current masses: start from nominal.
+      model.body_mass[:] = self._nominal['body_mass']
+      model.body_inertia[:] = self._nominal['body_inertia']
+      mujoco.mj_setTotalmass(model.ptr, ranges.total_mass.sample(random_state))
+      # Derived constants (dof_invweight0, body_subtreemass, ...) are stale
+      # until recomputed.
+      mujoco.mj_setConst(model.ptr, physics.data.ptr)
+
+
+def uniform_noise_halfwidths(
+  low: np.ndarray, high: np.ndarray, fraction: float
+) -> np.ndarray:
+  """ROBEL's observation noise half-widths: fraction * (high - low) / 2."""
+  return fraction * (np.asarray(high) - np.asarray(low)) / 2

@@ -1,0 +1,13 @@
+"""Task registries, one per domain, and the tags that classify variants."""
+
+from dm_control.utils import containers
+
+# Variant tags (ROBEL's Fixed / Random / RandomDynamics).
+FIXED = 'fixed'
+RANDOM = 'random'
+RANDOM_DYNAMICS = 'random_dynamics'
+TAGS = (FIXED, RANDOM, RANDOM_DYNAMICS)
+
+DCLAW = containers.TaggedTasks()
+
+DOMAINS = {'dclaw': DCLAW}

@@ -1,0 +1,92 @@
+"""Loads robel_dm tasks as dm_env environments.
+
+    from robel_dm import suite
+    env = suite.load('dclaw', 'turn_fixed', seed=0)
+
+`suite.load` is the only place that wraps tasks in an environment, so the
+performance-critical settings (compile the MJCF once, batch substeps, strip
+singleton observation dimensions) are the same for every task.
+"""
+
+import difflib
+from typing import Any
+
+from robel_dm import registry
+from robel_dm.environment import Environment
+from robel_dm.tasks import (  # noqa: F401  (imported to register the tasks)
+  dclaw_pose,
+  dclaw_screw,
+  dclaw_turn,
+)
+
+
+def _tagged(tag: str) -> tuple[tuple[str, str], ...]:
+  return tuple(
+    (domain, name)
+    for domain, tasks in registry.DOMAINS.items()
+    for name in tasks
+    if name in tasks.tagged(tag)
+  )
+
+
+ALL_TASKS = tuple(
+  (domain, name) for domain, tasks in registry.DOMAINS.items() for name in tasks
+)
+TASKS_BY_DOMAIN = {
+  domain: tuple(tasks) for domain, tasks in registry.DOMAINS.items()
+}
+FIXED = _tagged(registry.FIXED)
+RANDOM = _tagged(registry.RANDOM)
+RANDOM_DYNAMICS = _tagged(registry.RANDOM_DYNAMICS)
+
+
+def _unknown(kind: str, name: str, known) -> ValueError:
+  known = sorted(known)
+  close = difflib.get_close_matches(name, known, n=1)
+  hint = f' Did you mean {close[0]!r}?' if close else ''
+  return ValueError(f'unknown {kind} {name!r}; expected one of {known}.{hint}')
+
+
+def load(
+  domain: str,
+  task: str,
+  *,
+  seed: int | None = None,
+  time_limit: float | None = None,
+  task_kwargs: dict[str, Any] | None = None,
+  environment_kwargs: dict[str, Any] | None = None,
+) -> Environment:
+  """Builds a task's environment.
+
+  Args:
+    domain: 'dclaw'.
+    task: a task of the domain, e.g. 'turn_fixed' (see `TASKS_BY_DOMAIN`).
+    seed: seed of the environment's random state (initial states, goals,
+      dynamics and observation noise); None draws one from the OS.
+    time_limit: episode length in seconds; defaults to ROBEL's.
+    task_kwargs: keyword arguments of the task, e.g. `{'valve': 'valve4'}`.
+    environment_kwargs: extra `composer.Environment` arguments.
+
+  Returns:
+    A `dm_env.Environment` (a `composer.Environment`).
+
+  Raises:
+    ValueError: for an unknown domain, task or task argument.
+  """
+  if domain not in registry.DOMAINS:
+    raise _unknown('domain', domain, registry.DOMAINS)
+  tasks = registry.DOMAINS[domain]
+  if task not in tasks:
+    raise _unknown(f'{domain} task', task, tasks)
+  try:
+    task_instance = tasks[task](**(task_kwargs or {}))
+  except TypeError as error:
+    raise ValueError(f'bad task_kwargs for {domain}/{task}: {error}') from error
+  if time_limit is None:
+    time_limit = task_instance.time_limit
+  return Environment(
+    task_instance,
+    time_limit=time_limit,
+    random_state=seed,
+    **(environment_kwargs or {}),
+  )

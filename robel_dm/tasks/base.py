@@ -1,0 +1,404 @@
+"""Machinery shared by every robel_dm task.
+
+A `RobelTask` maps normalized actions to joint targets exactly as ROBEL does,
+reads the robot (and object) joints once per control step, optionally adds
+ROBEL's observation noise to that reading, and computes observation features,
+reward terms, score, success and safety counters once, in `after_step`.
+Observables only hand out those cached arrays (composer copies them), so every
+signal in a timestep comes from the same physics state.
+
+Observation noise reaches only what the agent observes; reward, score, success
+and safety are computed from the true state (see README, fidelity notes).
+"""
+
+import collections
+import math
+
+import numpy as np
+from dm_control import composer, mjcf
+from dm_control.composer.observation import observable
+from dm_env import specs
+
+from robel_dm import constants, randomization
+
+# Names of the signal observables every task provides.
+SCORE = 'score'
+SUCCESS = 'success'
+SAFETY = 'safety'
+REWARD_TERMS = 'reward_terms'
+SIGNAL_KEYS = (SCORE, SUCCESS, SAFETY)
+
+# Order of the counters in the `safety` observation.
+SAFETY_FIELDS = ('position', 'velocity', 'current')
+
+# Actions may exceed [-1, 1] by float rounding (e.g. a float32 policy).
+_ACTION_BOUND_TOLERANCE = 1e-6
+ACTION_BOUND_MODES = ('raise', 'clip')
+
+
+def wrap_angle(angle):
+  """Wraps radians to [-pi, pi)."""
+  return (angle + np.pi) % (2 * np.pi) - np.pi
+
+
+def norm(vector: np.ndarray) -> float:
+  """Euclidean norm of a small vector (cheaper than np.linalg.norm)."""
+  return math.sqrt(float(np.dot(vector, vector)))
+
+
+def _address_index(addresses) -> slice | np.ndarray:
+  """A slice if the addresses are contiguous and increasing (cheaper reads)."""
+  addresses = np.asarray(addresses, dtype=int).ravel()
+  if addresses.size and np.array_equal(
+    addresses, np.arange(addresses[0], addresses[0] + addresses.size)
+  ):
+    return slice(int(addresses[0]), int(addresses[-1]) + 1)
+  return addresses
+
+
+class RobelTask(composer.Task):
+  """Base class of robel_dm tasks (one level below `composer.Task`).
+
+  Subclasses define the class attributes `FEATURES` (observation name ->
+  size, in ROBEL's observation-dict order), `DEFAULT_OBSERVATION_KEYS`
+  (ROBEL's default flattened observation, in order) and `REWARD_TERMS`, and
+  implement `_initialize_state` and `_compute`.
+  """
+
+  FEATURES: dict[str, int] = {}
+  DEFAULT_OBSERVATION_KEYS: tuple[str, ...] = ()
+  REWARD_TERMS: tuple[str, ...] = ()
+
+  def __init__(
+    self,
+    *,
+    arena: composer.Arena,
+    robot: composer.Robot,
+    control_timestep: float,
+    episode_steps: int,
+    extra_sensed_joints: tuple[mjcf.Element, ...] = (),
+    extra_position_widths: tuple[float, ...] = (),
+    extra_velocity_widths: tuple[float, ...] = (),
+    dynamics: randomization.DynamicsRanges | None = None,
+    randomizer_targets: randomization.Targets | None = None,
+    observation_noise: float = 0.0,
+    observation_keys: tuple[str, ...] | None = None,
+    action_bounds: str = 'raise',
+  ):
+    """Initializes the task.
+
+    Args:
+      arena: the root entity; `robot` must already be attached to it.
+      robot: the actuated robot; its actuators define the action.
+      control_timestep: seconds between actions.
+      episode_steps: control steps per episode.
+      extra_sensed_joints: non-robot joints read with the robot (e.g. the
+        valve), appended after the robot joints.
+      extra_position_widths: range widths of those joints for noise, rad.
+      extra_velocity_widths: velocity-range widths of those joints, rad/s.
+      dynamics: ranges of per-episode dynamics randomization, or None.
+      randomizer_targets: elements `dynamics` acts on.
+      observation_noise: ROBEL's `sim_observation_noise` fraction; 0 = off.
+      observation_keys: the agent's observation, in order; defaults to
+        ROBEL's default keys for this task.
+      action_bounds: 'raise' (default) rejects actions outside [-1, 1];
+        'clip' clips them as ROBEL did.
+
+    Raises:
+      ValueError: for unknown observation keys, a bad `action_bounds`, a
+        negative noise fraction or non-positive episode length.
+    """
+    if action_bounds not in ACTION_BOUND_MODES:
+      raise ValueError(
+        f'action_bounds must be one of {ACTION_BOUND_MODES}, got '
+        f'{action_bounds!r}'
+      )
+    if observation_noise < 0 or not math.isfinite(observation_noise):
+      raise ValueError(f'observation_noise must be >= 0: {observation_noise}')
+    if episode_steps <= 0:
+      raise ValueError(f'episode_steps must be positive: {episode_steps}')
+    keys = tuple(observation_keys or self.DEFAULT_OBSERVATION_KEYS)
+    unknown = [key for key in keys if key not in self.FEATURES]
+    if unknown:
+      raise ValueError(
+        f'unknown observation keys {unknown}; this task offers '
+        f'{list(self.FEATURES)}'
+      )
+    if len(set(keys)) != len(keys):
+      raise ValueError(f'repeated observation keys: {keys}')
+
+    self._arena = arena
+    self._robot = robot
+    self._episode_steps = episode_steps
+    self._clip_actions = action_bounds == 'clip'
+    self._observation_noise = observation_noise
+    self._agent_keys = keys
+    self.set_timesteps(
+      control_timestep=control_timestep,
+      physics_timestep=constants.PHYSICS_TIMESTEP,
+    )
+
+    self._sensed_joints = tuple(robot.joints) + tuple(extra_sensed_joints)
+    self._extra_position_widths = np.asarray(extra_position_widths, float)
+    self._extra_velocity_widths = np.asarray(extra_velocity_widths, float)
+    self._randomizer = None
+    if dynamics is not None:
+      self._randomizer = randomization.DynamicsRandomizer(
+        dynamics, randomizer_targets or randomization.Targets()
+      )
+
+    num_actions = len(robot.actuators)
+    num_sensed = len(self._sensed_joints)
+    self._num_robot_joints = len(robot.joints)
+    self._last_action = np.zeros(num_actions)
+    self._target = np.zeros(num_actions)
+    # True and sensed (possibly noisy) joint state, robot joints first.
+    self._qpos = np.zeros(num_sensed)
+    self._qvel = np.zeros(num_sensed)
+    self._sensed_qpos = np.zeros(num_sensed)
+    self._sensed_qvel = np.zeros(num_sensed)
+    # Motor currents, mA: measured on hardware, zero in simulation.
+    self._current = np.zeros(self._num_robot_joints)
+
+    self._features = {
+      name: np.zeros(size) for name, size in self.FEATURES.items()
+    }
+    self._features['last_action'] = self._last_action
+    self._reward = 0.0
+    self._reward_terms = np.zeros(len(self.REWARD_TERMS))
+    self._score = np.zeros(())
+    self._success = np.zeros((), dtype=bool)
+    self._safety = np.zeros(len(SAFETY_FIELDS), dtype=np.int32)
+
+    self._task_observables = collections.OrderedDict()
+    ordered = keys + tuple(k for k in self.FEATURES if k not in keys)
+    for name in ordered:
+      self._add_observable(name, self._features[name], enabled=name in keys)
+    self._add_observable(SCORE, self._score)
+    self._add_observable(SUCCESS, self._success)
+    self._add_observable(SAFETY, self._safety)
+    self._add_observable(REWARD_TERMS, self._reward_terms, enabled=False)
+
+  def _add_observable(
+    self, name: str, value: np.ndarray, enabled: bool = True
+  ) -> None:
+    obs = observable.Generic(lambda physics: value)
+    obs.enabled = enabled
+    self._task_observables[name] = obs
+
+  # --- Public API ---------------------------------------------------------
+
+  @property
+  def root_entity(self) -> composer.Arena:
+    return self._arena
+
+  @property
+  def arena(self) -> composer.Arena:
+    return self._arena
+
+  @property
+  def robot(self) -> composer.Robot:
+    return self._robot
+
+  @property
+  def task_observables(self) -> collections.OrderedDict:
+    return self._task_observables
+
+  @property
+  def agent_observation_keys(self) -> tuple[str, ...]:
+    """Names of the observations the agent sees, in flattening order."""
+    return self._agent_keys
+
+  @property
+  def episode_steps(self) -> int:
+    return self._episode_steps
+
+  @property
+  def time_limit(self) -> float:
+    """Episode length in seconds of physics time.
+
+    Half a control step short of `episode_steps` control steps, so that
+    rounding in the accumulated physics time can never add or drop a step.
+    """
+    return (self._episode_steps - 0.5) * self.control_timestep
+
+  @property
+  def dynamics(self) -> randomization.DynamicsRanges | None:
+    return self._randomizer.ranges if self._randomizer else None
+
+  @property
+  def observation_noise(self) -> float:
+    return self._observation_noise
+
+  @property
+  def reward_terms(self) -> dict[str, float]:
+    """The reward's terms at the last step; the reward is their sum."""
+    return dict(
+      zip(self.REWARD_TERMS, self._reward_terms.tolist(), strict=True)
+    )
+
+  def flatten_observation(self, observation) -> np.ndarray:
+    """Concatenates the agent's observations in `agent_observation_keys` order.
+
+    Args:
+      observation: a timestep's observation dict.
+
+    Returns:
+      A float64 vector (ROBEL's flattened observation).
+    """
+    return np.concatenate(
+      [np.ravel(observation[key]) for key in self._agent_keys]
+    )
+
+  def action_spec(self, physics) -> specs.BoundedArray:
+    del physics
+    names = [actuator.name for actuator in self._robot.actuators]
+    return specs.BoundedArray(
+      shape=(len(names),),
+      dtype=np.float64,
+      minimum=-1.0,
+      maximum=1.0,
+      name='\t'.join(names),
+    )
+
+  # --- composer hooks ------------------------------------------------------
+
+  def after_compile(self, physics, random_state) -> None:
+    del random_state
+    robot_joints = physics.bind(self._robot.joints)
+    sensed = physics.bind(self._sensed_joints)
+    self._qpos_index = _address_index(sensed.qposadr)
+    self._qvel_index = _address_index(sensed.dofadr)
+    self._robot_qpos_index = _address_index(robot_joints.qposadr)
+    self._ctrl_index = _address_index(
+      physics.bind(self._robot.actuators).element_id
+    )
+    ctrl_range = physics.bind(self._robot.actuators).ctrlrange
+    self._range_low = ctrl_range[:, 0].copy()
+    self._range_high = ctrl_range[:, 1].copy()
+    self._range_center = (self._range_low + self._range_high) / 2
+    self._range_half = (self._range_high - self._range_low) / 2
+    self._max_step = self._robot.max_joint_speed * self.control_timestep
+    limits = self._robot.safety_limits
+    self._safe_low = self._range_low + limits.position_margin
+    self._safe_high = self._range_high - limits.position_margin
+    self._position_noise = randomization.uniform_noise_halfwidths(
+      np.concatenate(
+        [self._range_low, np.zeros_like(self._extra_position_widths)]
+      ),
+      np.concatenate([self._range_high, self._extra_position_widths]),
+      self._observation_noise,
+    )
+    speed = self._robot.max_joint_speed
+    self._velocity_noise = randomization.uniform_noise_halfwidths(
+      np.concatenate(
+        [
+          np.full(self._num_robot_joints, -speed),
+          np.zeros_like(self._extra_velocity_widths),
+        ]
+      ),
+      np.concatenate(
+        [np.full(self._num_robot_joints, speed), self._extra_velocity_widths]
+      ),
+      self._observation_noise,
+    )
+    if self._randomizer is not None:
+      self._randomizer.after_compile(physics)
+
+  def initialize_episode(self, physics, random_state) -> None:
+    if self._randomizer is not None:
+      self._randomizer.apply(physics, random_state)
+    self._last_action[:] = 0.0
+    self._initialize_state(physics, random_state)
+    self._update(physics, random_state)
+
+  def before_step(self, physics, action, random_state) -> None:
+    del random_state
+    action = self._validated_action(action)
+    np.clip(action, -1.0, 1.0, out=self._last_action)
+    # ROBEL's action map: denormalize to the joint range, then limit the
+    # change from the current position to max_speed * control_timestep.
+    target = self._target
+    np.multiply(self._last_action, self._range_half, out=target)
+    target += self._range_center
+    qpos = physics.data.qpos[self._robot_qpos_index]
+    np.clip(target, qpos - self._max_step, qpos + self._max_step, out=target)
+    physics.data.ctrl[self._ctrl_index] = target
+
+  def after_step(self, physics, random_state) -> None:
+    self._update(physics, random_state)
+
+  def get_reward(self, physics) -> float:
+    del physics
+    return self._reward
+
+  # --- Subclass interface --------------------------------------------------
+
+  def _initialize_state(self, physics, random_state) -> None:
+    """Sets the episode's initial state and goal (inside reset_context)."""
+    raise NotImplementedError
+
+  def _compute(self, physics) -> None:
+    """Fills features, `_reward_terms`, `_score` and `_success`.
+
+    Reads `_qpos`/`_qvel` (true state) and `_sensed_qpos`/`_sensed_qvel`
+    (what the agent observes). Called once per control step and at reset.
+    """
+    raise NotImplementedError
+
+  # --- Helpers -------------------------------------------------------------
+
+  def _update(self, physics, random_state) -> None:
+    self._qpos[:] = physics.data.qpos[self._qpos_index]
+    self._qvel[:] = physics.data.qvel[self._qvel_index]
+    if self._observation_noise:
+      size = self._qpos.size
+      self._sensed_qpos[:] = self._qpos + self._position_noise * (
+        random_state.uniform(-1.0, 1.0, size)
+      )
+      self._sensed_qvel[:] = self._qvel + self._velocity_noise * (
+        random_state.uniform(-1.0, 1.0, size)
+      )
+    else:
+      self._sensed_qpos[:] = self._qpos
+      self._sensed_qvel[:] = self._qvel
+    self._compute(physics)
+    self._reward = float(self._reward_terms.sum())
+    self._update_safety()
+
+  def _update_safety(self) -> None:
+    n = self._num_robot_joints
+    qpos = self._qpos[:n]
+    limits = self._robot.safety_limits
+    self._safety[0] = np.count_nonzero(
+      (qpos < self._safe_low) | (qpos > self._safe_high)
+    )
+    self._safety[1] = np.count_nonzero(
+      np.abs(self._qvel[:n]) > limits.max_speed
+    )
+    self._safety[2] = np.count_nonzero(
+      np.abs(self._current) > limits.max_current
+    )
+
+  def _validated_action(self, action) -> np.ndarray:
+    action = np.asarray(action, dtype=np.float64)
+    expected = self._last_action.shape
+    if action.shape != expected:
+      raise ValueError(
+        f'action has shape {action.shape}, expected {expected} '
+        '(one normalized joint target in [-1, 1] per actuator)'
+      )
+    # One reduction covers the common case; NaN fails the comparison too.
+    if np.abs(action).max() <= 1.0 + _ACTION_BOUND_TOLERANCE:
+      return action
+    finite = np.isfinite(action)
+    if not finite.all():
+      bad = np.flatnonzero(~finite).tolist()
+      raise ValueError(f'action has non-finite entries at indices {bad}')
+    if not self._clip_actions:
+      bad = np.flatnonzero(np.abs(action) > 1.0).tolist()
+      raise ValueError(
+        f'action outside [-1, 1] at indices {bad}: {action[bad].tolist()} '
+        "(pass task_kwargs={'action_bounds': 'clip'} to clip instead)"
+      )
+    return action

@@ -1,0 +1,185 @@
+"""D'Claw Pose: drive the nine joints to a goal pose (robel_facts 2.1)."""
+
+import numpy as np
+from dm_control.composer import variation
+from dm_control.composer.variation import distributions
+
+from robel_dm import constants, randomization, registry
+from robel_dm.arenas import station
+from robel_dm.entities import dclaw
+from robel_dm.tasks import base
+
+_EPISODE_STEPS = 80  # 4 s at 20 Hz.
+
+# Success: mean |joint error| below this, averaged over the episode, rad.
+_SUCCESS_THRESHOLD = np.deg2rad(10.0)
+# Score: points fall linearly to 0 at this mean |joint error|, rad.
+_POINTS_ERROR_SCALE = np.pi / 4
+# joint_vel_cost penalizes joints at least this fast, rad/s, with this weight.
+_FAST_JOINT_SPEED = np.pi
+_JOINT_VEL_COST_WEIGHT = 0.1
+# A moving goal oscillates at an angular frequency in this range, rad/s, and
+# its amplitude is cut so the goal never moves faster than this, rad/s.
+_GOAL_FREQUENCY = distributions.Uniform(0.5, 2.0)
+_MAX_GOAL_SPEED = np.pi / 6
+
+# ROBEL's random-pose sampler: the action ranges, except that the middle
+# joints are never bent outwards (upper bound 0), rad.
+_POSE_LOW = np.tile([-0.48, -np.pi / 3, -np.pi / 2], 3)
+_POSE_HIGH = np.tile([0.48, 0.0, np.pi / 2], 3)
+RANDOM_POSE = distributions.Uniform(_POSE_LOW, _POSE_HIGH)
+
+# pose_fixed starts every episode from the same pose and chases the same goal
+# (ROBEL's "Fixed" drew both at random each episode). Both poses lie inside
+# the random sampler's box and keep the fingertips apart, rad.
+FIXED_INITIAL_POSE = np.zeros(9)
+FIXED_GOAL_POSE = np.array([0.3, -0.6, 0.9, -0.3, -0.6, 0.9, 0.0, -0.8, 1.1])
+
+
+class PoseTask(base.RobelTask):
+  """Match a static or oscillating goal pose of the claw's joints."""
+
+  FEATURES = {'qpos': 9, 'qvel': 9, 'last_action': 9, 'qpos_error': 9}
+  DEFAULT_OBSERVATION_KEYS = ('qpos', 'last_action', 'qpos_error')
+  REWARD_TERMS = ('pose_error_cost', 'joint_vel_cost')
+
+  def __init__(
+    self,
+    *,
+    initial_pose=FIXED_INITIAL_POSE,
+    goal_pose=FIXED_GOAL_POSE,
+    goal_frequency=None,
+    dynamics: randomization.DynamicsRanges | None = None,
+    observation_noise: float = 0.0,
+    observation_keys: tuple[str, ...] | None = None,
+    action_bounds: str = 'raise',
+  ):
+    """Builds the claw station and the task.
+
+    Args:
+      initial_pose: 9 joint angles (or a Variation of them) to start from.
+      goal_pose: 9 joint angles (or a Variation) of the goal.
+      goal_frequency: None for a static goal. Otherwise an angular frequency
+        (rad/s, or a Variation): the claw starts halfway between
+        `initial_pose` and `goal_pose` and the goal oscillates between them
+        as ROBEL's PoseRandom does, capped at `_MAX_GOAL_SPEED`.
+      dynamics: per-episode dynamics ranges, or None.
+      observation_noise: ROBEL's observation-noise fraction.
+      observation_keys: the agent's observation; ROBEL's default if None.
+      action_bounds: 'raise' or 'clip' for actions outside [-1, 1].
+    """
+    arena = station.ClawStation(
+      mount_height=station.MOUNT_HEIGHT_POSE, show_goal=False
+    )
+    claw = dclaw.DClaw()
+    arena.attach_claw(claw)
+    self._initial_pose = initial_pose
+    self._goal_pose = goal_pose
+    self._goal_frequency = goal_frequency
+    self._goal_center = np.zeros(9)
+    self._goal_amplitude = np.zeros(9)
+    self._frequency = 0.0
+    self._goal = np.zeros(9)
+    self._error_sum = 0.0
+    self._error_count = 0
+    super().__init__(
+      arena=arena,
+      robot=claw,
+      control_timestep=constants.CONTROL_TIMESTEP_FAST,
+      episode_steps=_EPISODE_STEPS,
+      dynamics=dynamics,
+      randomizer_targets=randomization.Targets(
+        joints=claw.joints, actuators=claw.actuators
+      ),
+      observation_noise=observation_noise,
+      observation_keys=observation_keys,
+      action_bounds=action_bounds,
+    )
+
+  @property
+  def goal(self) -> np.ndarray:
+    """The current goal pose, rad."""
+    return self._goal.copy()
+
+  def _initialize_state(self, physics, random_state) -> None:
+    pose_a = variation.evaluate(self._initial_pose, random_state=random_state)
+    pose_b = variation.evaluate(self._goal_pose, random_state=random_state)
+    if self._goal_frequency is None:
+      initial = pose_a
+      self._goal_center[:] = pose_b
+      self._goal_amplitude[:] = 0.0
+      self._frequency = 0.0
+    else:
+      frequency = variation.evaluate(
+        self._goal_frequency, random_state=random_state
+      )
+      initial = (pose_a + pose_b) / 2
+      self._goal_center[:] = initial
+      self._goal_amplitude[:] = np.minimum(
+        np.abs(pose_b - pose_a) / 2, _MAX_GOAL_SPEED / frequency
+      )
+      self._frequency = float(frequency)
+    physics.bind(self.robot.joints).qpos = initial
+    physics.bind(self.robot.actuators).ctrl = initial
+    self._error_sum = 0.0
+    self._error_count = 0
+
+  def _compute(self, physics) -> None:
+    goal = self._goal
+    if self._frequency:
+      np.multiply(
+        self._goal_amplitude,
+        np.sin(self._frequency * physics.data.time),
+        out=goal,
+      )
+      goal += self._goal_center
+    else:
+      goal[:] = self._goal_center
+    features = self._features
+    features['qpos'][:] = self._sensed_qpos
+    features['qvel'][:] = self._sensed_qvel
+    np.subtract(goal, self._sensed_qpos, out=features['qpos_error'])
+
+    error = goal - self._qpos
+    qvel = self._qvel
+    fast = np.abs(qvel) >= _FAST_JOINT_SPEED
+    self._reward_terms[0] = -base.norm(error)
+    self._reward_terms[1] = -_JOINT_VEL_COST_WEIGHT * base.norm(qvel[fast])
+    mean_error = float(np.abs(error).mean())
+    self._score[...] = 1.0 - min(mean_error / _POINTS_ERROR_SCALE, 1.0)
+    # ROBEL's success evaluator: the episode's mean tracking error.
+    self._error_sum += mean_error
+    self._error_count += 1
+    self._success[...] = (
+      self._error_sum / self._error_count < _SUCCESS_THRESHOLD
+    )
+
+
+@registry.DCLAW.add(registry.FIXED)
+def pose_fixed(**kwargs) -> PoseTask:
+  """A fixed goal pose from a fixed initial pose."""
+  return PoseTask(**kwargs)
+
+
+@registry.DCLAW.add(registry.RANDOM)
+def pose_random(**kwargs) -> PoseTask:
+  """A goal oscillating between two random poses."""
+  return PoseTask(
+    initial_pose=RANDOM_POSE,
+    goal_pose=RANDOM_POSE,
+    goal_frequency=_GOAL_FREQUENCY,
+    **kwargs,
+  )
+
+
+@registry.DCLAW.add(registry.RANDOM_DYNAMICS)
+def pose_random_dynamics(**kwargs) -> PoseTask:
+  """pose_random with randomized joint dynamics and observation noise."""
+  return PoseTask(
+    initial_pose=RANDOM_POSE,
+    goal_pose=RANDOM_POSE,
+    goal_frequency=_GOAL_FREQUENCY,
+    dynamics=randomization.DCLAW_POSE,
+    observation_noise=constants.OBSERVATION_NOISE_FRACTION,
+    **kwargs,
+  )
