@@ -5,33 +5,80 @@ observation updater once per physics substep (about 4 us each). ROBEL runs 20
 or 40 substeps per control step, so that loop costs 15-30% of an `env.step`.
 When no substep hook is defined and every observable samples only the final
 substep (composer's "fast path" with a buffer of 1), the intermediate substeps
-are invisible to the task and the agent, and one `physics.step(n)` call gives
-bit-identical physics. Anything else falls back to composer's own loop.
+are invisible to the task and the agent, and one batched MuJoCo call gives
+bit-identical physics. In the same situation observation buffering is a no-op,
+so observables are evaluated once per control step without the buffers. In any
+other configuration composer's own loop and updater run unchanged.
 """
 
-import dm_env
+import collections
+
 from dm_control import composer
 from dm_control.composer.observation import updater
 from dm_control.rl import control
+import dm_env
+import mujoco
+import numpy as np
 
 _SUBSTEP_HOOKS = ('before_substep', 'after_substep')
 
 
 class _Updater(updater.Updater):
-  """Observation updater that can skip substeps nobody observes."""
+  """Observation updater with a lean path for last-substep-only observables."""
+
+  def reset(self, physics, random_state):
+    super().reset(physics, random_state)
+    enabled = list(self._enabled_list)
+    self._last_substep_only = all(
+      e.update_interval == 1 and e.delay == 0 and e.buffer_size == 1
+      for e in enabled
+    )
+    # Lean path: no buffers at all; one evaluation per observable and step.
+    self._lean = (
+      self._last_substep_only
+      and not self._is_nested
+      and self._strip_singleton_buffer_dim
+      and all(e.observable.aggregator is None for e in enabled)
+    )
+    if self._lean:
+      self._names = tuple(self._enabled_structure)
+      self._callables = tuple(e.observation_callable for e in enabled)
+      self._dtypes = tuple(e.buffer.dtype for e in enabled)
+      self._latest = [e.buffer.read(0) for e in enabled]
+      self._handed_out = False
+
+  def samples_last_substep_only(self) -> bool:
+    return self._last_substep_only
 
   def skip_substeps(self, count: int) -> None:
     # Fast-path observables are scheduled on the last substep only, so the
     # skipped updates would have sampled nothing: advance the clock alone.
     self._step_counter += count
 
-  def samples_last_substep_only(self) -> bool:
-    return all(
-      enabled.update_interval == 1
-      and enabled.delay == 0
-      and enabled.buffer_size == 1
-      for enabled in self._enabled_list
-    )
+  def prepare_for_next_control_step(self):
+    if not self._lean:
+      super().prepare_for_next_control_step()
+
+  def update(self):
+    if not self._lean:
+      super().update()
+      return
+    self._step_counter += 1
+    if self._step_counter % self._physics_steps_per_control_step == 0:
+      self._latest = [
+        np.array(get(), dtype=dtype)
+        for get, dtype in zip(self._callables, self._dtypes, strict=True)
+      ]
+      self._handed_out = False
+
+  def get_observation(self):
+    if not self._lean:
+      return super().get_observation()
+    values = self._latest
+    if self._handed_out:  # Never hand the same arrays out twice.
+      values = [value.copy() for value in values]
+    self._handed_out = True
+    return collections.OrderedDict(zip(self._names, values, strict=True))
 
 
 class Environment(composer.Environment):
@@ -70,14 +117,49 @@ class Environment(composer.Environment):
         return False
     return self._observation_updater.samples_last_substep_only()
 
+  def _prepare_batching(self) -> None:
+    self._batch_substeps = self._substeps_are_unobserved()
+    physics = self._physics
+    # The batched call reproduces dm_control's legacy Euler step; any other
+    # stepping mode goes through `physics.step`.
+    self._direct_mujoco = (
+      physics.legacy_step
+      and physics.model.opt.integrator != mujoco.mjtIntegrator.mjINT_RK4
+    )
+    self._model_ptr = physics.model.ptr
+    self._data_ptr = physics.data.ptr
+    self._warning_counts = physics.data.warning.number
+    self._warnings_at_reset = self._warning_counts.copy()
+
   def add_extra_hook(self, hook_name, hook_callable):
     super().add_extra_hook(hook_name, hook_callable)
     self._batch_substeps = self._substeps_are_unobserved()
 
   def reset(self) -> dm_env.TimeStep:
     timestep = super().reset()
-    self._batch_substeps = self._substeps_are_unobserved()
+    self._prepare_batching()
     return timestep
+
+  def _step_physics(self) -> None:
+    """Advances all substeps of one control step at once."""
+    if not self._direct_mujoco:
+      self._physics.step(self._n_sub_steps)
+      return
+    model, data = self._model_ptr, self._data_ptr
+    # dm_control's legacy step: finish the pending step, take the rest, and
+    # leave position/velocity-dependent quantities up to date.
+    mujoco.mj_step2(model, data)
+    if self._n_sub_steps > 1:
+      mujoco.mj_step(model, data, self._n_sub_steps - 1)
+    mujoco.mj_step1(model, data)
+    counts = self._warning_counts
+    if counts.any() and (counts > self._warnings_at_reset).any():
+      new = np.flatnonzero(counts > self._warnings_at_reset)
+      names = ', '.join(mujoco.mjtWarning(int(i)).name for i in new)
+      np.copyto(self._warnings_at_reset, counts)
+      raise control.PhysicsError(
+        f'Physics state is invalid. Warning(s): {names}'
+      )
 
   def step(self, action) -> dm_env.TimeStep:
     if not self._batch_substeps or self._reset_next_step:
@@ -86,7 +168,7 @@ class Environment(composer.Environment):
     self._hooks.before_step(self._physics_proxy, action, self._random_state)
     self._observation_updater.prepare_for_next_control_step()
     try:
-      self._physics.step(self._n_sub_steps)
+      self._step_physics()
       physics_is_divergent = False
     except control.PhysicsError:
       if self._raise_exception_on_physics_error:
@@ -103,7 +185,7 @@ class Environment(composer.Environment):
       discount = self._task.get_discount(self._physics_proxy)
       terminating = (
         self._task.should_terminate_episode(self._physics_proxy)
-        or self._physics.time() >= self._time_limit
+        or self._data_ptr.time >= self._time_limit
       )
     observation = self._observation_updater.get_observation()
     if terminating:

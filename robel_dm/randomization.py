@@ -8,9 +8,9 @@ draws never compound across episodes and the MJCF is never recompiled.
 
 import dataclasses
 
+from dm_control import mjcf
 import mujoco
 import numpy as np
-from dm_control import mjcf
 
 # ROBEL draws geom friction as absolute values meant for its default
 # (metal) friction; robel_dm applies the draw as a factor relative to this

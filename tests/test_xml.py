@@ -8,10 +8,10 @@ any MuJoCo warning, and reproduce the compiled facts recorded in
 import math
 import pathlib
 
+from dm_control import mjcf
 import mujoco
 import numpy as np
 import pytest
-from dm_control import mjcf
 
 _XML_DIR = pathlib.Path(__file__).resolve().parents[1] / 'xml'
 _XML_FILES = sorted(_XML_DIR.glob('**/*.xml'))

@@ -2,9 +2,9 @@
 
 import dataclasses
 
-import numpy as np
 from dm_control import composer, mjcf
 from dm_control.composer.observation import observable
+import numpy as np
 
 from robel_dm import assets
 

@@ -14,10 +14,10 @@ and safety are computed from the true state (see README, fidelity notes).
 import collections
 import math
 
-import numpy as np
 from dm_control import composer, mjcf
 from dm_control.composer.observation import observable
 from dm_env import specs
+import numpy as np
 
 from robel_dm import constants, randomization
 
@@ -31,7 +31,8 @@ SIGNAL_KEYS = (SCORE, SUCCESS, SAFETY)
 # Order of the counters in the `safety` observation.
 SAFETY_FIELDS = ('position', 'velocity', 'current')
 
-# Actions may exceed [-1, 1] by float rounding (e.g. a float32 policy).
+# Actions may exceed [-1, 1] by float rounding (e.g. a float32 policy); such
+# actions are clipped even when out-of-range actions are rejected.
 _ACTION_BOUND_TOLERANCE = 1e-6
 ACTION_BOUND_MODES = ('raise', 'clip')
 
@@ -150,20 +151,41 @@ class RobelTask(composer.Task):
     num_actions = len(robot.actuators)
     num_sensed = len(self._sensed_joints)
     self._num_robot_joints = len(robot.joints)
-    self._last_action = np.zeros(num_actions)
-    self._target = np.zeros(num_actions)
+    if self._num_robot_joints != num_actions:
+      raise ValueError('the robot needs one position actuator per joint')
+    self._target = np.zeros(len(robot.actuators))
+    self._scratch = np.zeros(num_actions)  # Reused to avoid per-step arrays.
     # True and sensed (possibly noisy) joint state, robot joints first.
     self._qpos = np.zeros(num_sensed)
     self._qvel = np.zeros(num_sensed)
-    self._sensed_qpos = np.zeros(num_sensed)
-    self._sensed_qvel = np.zeros(num_sensed)
-    # Motor currents, mA: measured on hardware, zero in simulation.
+    # Without noise the agent senses the true state: share the arrays.
+    self._sensed_qpos = (
+      np.zeros(num_sensed) if observation_noise else self._qpos
+    )
+    self._sensed_qvel = (
+      np.zeros(num_sensed) if observation_noise else self._qvel
+    )
+    # Views of the robot's share of the true state.
+    self._robot_qpos = self._qpos[: self._num_robot_joints]
+    self._robot_qvel = self._qvel[: self._num_robot_joints]
+    # Motor currents, mA: measured on hardware; simulation models none, so
+    # the current counter stays 0 there.
     self._current = np.zeros(self._num_robot_joints)
+    self._current_measured = False
 
-    self._features = {
-      name: np.zeros(size) for name, size in self.FEATURES.items()
-    }
-    self._features['last_action'] = self._last_action
+    # All features are views of one buffer, in FEATURES order, so that
+    # neighbouring features can be written with one assignment.
+    self._feature_buffer = np.zeros(sum(self.FEATURES.values()))
+    self._feature_offsets = {}
+    self._features = {}
+    offset = 0
+    for name, size in self.FEATURES.items():
+      self._feature_offsets[name] = offset
+      self._features[name] = self._feature_buffer[offset : offset + size]
+      offset += size
+    self._last_action = self._features['last_action']
+    if self._last_action.size != num_actions:
+      raise ValueError(f'last_action must have {num_actions} entries')
     self._reward = 0.0
     self._reward_terms = np.zeros(len(self.REWARD_TERMS))
     self._score = np.zeros(())
@@ -178,6 +200,12 @@ class RobelTask(composer.Task):
     self._add_observable(SUCCESS, self._success)
     self._add_observable(SAFETY, self._safety)
     self._add_observable(REWARD_TERMS, self._reward_terms, enabled=False)
+
+  def _feature_span(self, first: str, last: str) -> np.ndarray:
+    """A view of the features from `first` to `last` (FEATURES order)."""
+    start = self._feature_offsets[first]
+    stop = self._feature_offsets[last] + self.FEATURES[last]
+    return self._feature_buffer[start:stop]
 
   def _add_observable(
     self, name: str, value: np.ndarray, enabled: bool = True
@@ -282,6 +310,12 @@ class RobelTask(composer.Task):
     limits = self._robot.safety_limits
     self._safe_low = self._range_low + limits.position_margin
     self._safe_high = self._range_high - limits.position_margin
+    self._max_safe_speed = limits.max_speed
+    self._max_safe_current = limits.max_current
+    # The hot path reads and writes these views of MjData directly.
+    self._data_qpos = physics.data.qpos
+    self._data_qvel = physics.data.qvel
+    self._data_ctrl = physics.data.ctrl
     self._position_noise = randomization.uniform_noise_halfwidths(
       np.concatenate(
         [self._range_low, np.zeros_like(self._extra_position_widths)]
@@ -314,16 +348,18 @@ class RobelTask(composer.Task):
 
   def before_step(self, physics, action, random_state) -> None:
     del random_state
-    action = self._validated_action(action)
-    np.clip(action, -1.0, 1.0, out=self._last_action)
+    last_action, target, delta = self._last_action, self._target, self._scratch
+    last_action[:] = self._validated_action(action)
     # ROBEL's action map: denormalize to the joint range, then limit the
     # change from the current position to max_speed * control_timestep.
-    target = self._target
-    np.multiply(self._last_action, self._range_half, out=target)
+    np.multiply(last_action, self._range_half, out=target)
     target += self._range_center
-    qpos = physics.data.qpos[self._robot_qpos_index]
-    np.clip(target, qpos - self._max_step, qpos + self._max_step, out=target)
-    physics.data.ctrl[self._ctrl_index] = target
+    qpos = self._data_qpos[self._robot_qpos_index]
+    np.subtract(target, qpos, out=delta)
+    np.minimum(delta, self._max_step, out=delta)
+    np.maximum(delta, -self._max_step, out=delta)
+    np.add(qpos, delta, out=target)
+    self._data_ctrl[self._ctrl_index] = target
 
   def after_step(self, physics, random_state) -> None:
     self._update(physics, random_state)
@@ -338,8 +374,8 @@ class RobelTask(composer.Task):
     """Sets the episode's initial state and goal (inside reset_context)."""
     raise NotImplementedError
 
-  def _compute(self, physics) -> None:
-    """Fills features, `_reward_terms`, `_score` and `_success`.
+  def _compute(self, physics) -> tuple[float, ...]:
+    """Fills the features, `_score` and `_success`; returns the reward terms.
 
     Reads `_qpos`/`_qvel` (true state) and `_sensed_qpos`/`_sensed_qvel`
     (what the agent observes). Called once per control step and at reset.
@@ -349,8 +385,8 @@ class RobelTask(composer.Task):
   # --- Helpers -------------------------------------------------------------
 
   def _update(self, physics, random_state) -> None:
-    self._qpos[:] = physics.data.qpos[self._qpos_index]
-    self._qvel[:] = physics.data.qvel[self._qvel_index]
+    self._qpos[:] = self._data_qpos[self._qpos_index]
+    self._qvel[:] = self._data_qvel[self._qvel_index]
     if self._observation_noise:
       size = self._qpos.size
       self._sensed_qpos[:] = self._qpos + self._position_noise * (
@@ -359,26 +395,22 @@ class RobelTask(composer.Task):
       self._sensed_qvel[:] = self._qvel + self._velocity_noise * (
         random_state.uniform(-1.0, 1.0, size)
       )
-    else:
-      self._sensed_qpos[:] = self._qpos
-      self._sensed_qvel[:] = self._qvel
-    self._compute(physics)
-    self._reward = float(self._reward_terms.sum())
+    terms = self._compute(physics)
+    self._reward_terms[:] = terms
+    self._reward = sum(terms)
     self._update_safety()
 
   def _update_safety(self) -> None:
-    n = self._num_robot_joints
-    qpos = self._qpos[:n]
-    limits = self._robot.safety_limits
-    self._safety[0] = np.count_nonzero(
-      (qpos < self._safe_low) | (qpos > self._safe_high)
+    qpos = self._robot_qpos
+    count = np.count_nonzero
+    self._safety[0] = count(qpos < self._safe_low) + count(
+      qpos > self._safe_high
     )
-    self._safety[1] = np.count_nonzero(
-      np.abs(self._qvel[:n]) > limits.max_speed
-    )
-    self._safety[2] = np.count_nonzero(
-      np.abs(self._current) > limits.max_current
-    )
+    speed = np.abs(self._robot_qvel, out=self._scratch)
+    self._safety[1] = count(speed > self._max_safe_speed)
+    if self._current_measured:
+      over = np.abs(self._current) > self._max_safe_current
+      self._safety[2] = count(over)
 
   def _validated_action(self, action) -> np.ndarray:
     action = np.asarray(action, dtype=np.float64)
@@ -389,16 +421,17 @@ class RobelTask(composer.Task):
         '(one normalized joint target in [-1, 1] per actuator)'
       )
     # One reduction covers the common case; NaN fails the comparison too.
-    if np.abs(action).max() <= 1.0 + _ACTION_BOUND_TOLERANCE:
+    if np.abs(action, out=self._scratch).max() <= 1.0:
       return action
     finite = np.isfinite(action)
     if not finite.all():
       bad = np.flatnonzero(~finite).tolist()
       raise ValueError(f'action has non-finite entries at indices {bad}')
-    if not self._clip_actions:
-      bad = np.flatnonzero(np.abs(action) > 1.0).tolist()
+    outside = np.abs(action) > 1.0 + _ACTION_BOUND_TOLERANCE
+    if outside.any() and not self._clip_actions:
+      bad = np.flatnonzero(outside).tolist()
       raise ValueError(
         f'action outside [-1, 1] at indices {bad}: {action[bad].tolist()} '
         "(pass task_kwargs={'action_bounds': 'clip'} to clip instead)"
       )
-    return action
+    return np.clip(action, -1.0, 1.0)

@@ -1,8 +1,8 @@
 """D'Claw Pose: drive the nine joints to a goal pose (robel_facts 2.1)."""
 
-import numpy as np
 from dm_control.composer import variation
 from dm_control.composer.variation import distributions
+import numpy as np
 
 from robel_dm import constants, randomization, registry
 from robel_dm.arenas import station
@@ -80,6 +80,7 @@ class PoseTask(base.RobelTask):
     self._goal_amplitude = np.zeros(9)
     self._frequency = 0.0
     self._goal = np.zeros(9)
+    self._error = np.zeros(9)
     self._error_sum = 0.0
     self._error_count = 0
     super().__init__(
@@ -95,6 +96,9 @@ class PoseTask(base.RobelTask):
       observation_keys=observation_keys,
       action_bounds=action_bounds,
     )
+    self._qpos_feature = self._features['qpos']
+    self._qvel_feature = self._features['qvel']
+    self._qpos_error_feature = self._features['qpos_error']
 
   @property
   def goal(self) -> np.ndarray:
@@ -119,40 +123,35 @@ class PoseTask(base.RobelTask):
         np.abs(pose_b - pose_a) / 2, _MAX_GOAL_SPEED / frequency
       )
       self._frequency = float(frequency)
+    self._goal[:] = self._goal_center  # The goal at time 0.
     physics.bind(self.robot.joints).qpos = initial
     physics.bind(self.robot.actuators).ctrl = initial
     self._error_sum = 0.0
     self._error_count = 0
 
-  def _compute(self, physics) -> None:
+  def _compute(self, physics) -> tuple[float, ...]:
     goal = self._goal
     if self._frequency:
-      np.multiply(
-        self._goal_amplitude,
-        np.sin(self._frequency * physics.data.time),
-        out=goal,
-      )
+      phase = np.sin(self._frequency * physics.data.time)
+      np.multiply(self._goal_amplitude, phase, out=goal)
       goal += self._goal_center
-    else:
-      goal[:] = self._goal_center
-    features = self._features
-    features['qpos'][:] = self._sensed_qpos
-    features['qvel'][:] = self._sensed_qvel
-    np.subtract(goal, self._sensed_qpos, out=features['qpos_error'])
+    self._qpos_feature[:] = self._sensed_qpos
+    self._qvel_feature[:] = self._sensed_qvel
+    np.subtract(goal, self._sensed_qpos, out=self._qpos_error_feature)
 
-    error = goal - self._qpos
+    error = np.subtract(goal, self._qpos, out=self._error)
     qvel = self._qvel
     fast = np.abs(qvel) >= _FAST_JOINT_SPEED
-    self._reward_terms[0] = -base.norm(error)
-    self._reward_terms[1] = -_JOINT_VEL_COST_WEIGHT * base.norm(qvel[fast])
-    mean_error = float(np.abs(error).mean())
+    pose_error_cost = -base.norm(error)
+    joint_vel_cost = -_JOINT_VEL_COST_WEIGHT * base.norm(qvel[fast])
+    mean_error = float(np.abs(error, out=error).sum()) / error.size
     self._score[...] = 1.0 - min(mean_error / _POINTS_ERROR_SCALE, 1.0)
     # ROBEL's success evaluator: the episode's mean tracking error.
     self._error_sum += mean_error
     self._error_count += 1
-    self._success[...] = (
-      self._error_sum / self._error_count < _SUCCESS_THRESHOLD
-    )
+    mean_tracking_error = self._error_sum / self._error_count
+    self._success[...] = mean_tracking_error < _SUCCESS_THRESHOLD
+    return (pose_error_cost, joint_vel_cost)
 
 
 @registry.DCLAW.add(registry.FIXED)

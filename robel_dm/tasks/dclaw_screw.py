@@ -1,7 +1,7 @@
 """D'Claw Screw: turn the valve continuously at a goal velocity (2.2)."""
 
-import numpy as np
 from dm_control.composer.variation import distributions
+import numpy as np
 
 from robel_dm import constants, randomization, registry
 from robel_dm.tasks import dclaw_turn

@@ -1,8 +1,10 @@
 """D'Claw Turn: turn a free valve to a goal angle (robel_facts 2.2)."""
 
-import numpy as np
+import math
+
 from dm_control.composer import variation
 from dm_control.composer.variation import distributions
+import numpy as np
 
 from robel_dm import constants, randomization, registry
 from robel_dm.arenas import station
@@ -126,6 +128,11 @@ class TurnTask(base.RobelTask):
       observation_keys=observation_keys,
       action_bounds=action_bounds,
     )
+    self._claw_qpos_feature = self._features['claw_qpos']
+    self._claw_qvel_feature = self._features['claw_qvel']
+    self._object_features = self._feature_span('object_x', 'object_qvel')
+    self._target_error_feature = self._features['target_error']
+    self._diff = np.zeros(len(claw.joints))
 
   @property
   def valve(self) -> valve_lib.Valve:
@@ -141,7 +148,8 @@ class TurnTask(base.RobelTask):
     body_id = physics.model.name2id(
       self.arena.goal_body.full_identifier, 'body'
     )
-    self._goal_mocap = int(physics.model.body_mocapid[body_id])
+    mocap_id = physics.model.body_mocapid[body_id]
+    self._goal_quat = physics.data.mocap_quat[mocap_id]  # A view.
 
   def _initialize_state(self, physics, random_state) -> None:
     initial = float(
@@ -158,40 +166,52 @@ class TurnTask(base.RobelTask):
     physics.bind(self.robot.joints).qpos = dclaw.RESET_POSE
     physics.bind(self.robot.actuators).ctrl = dclaw.RESET_POSE
     physics.bind(self._valve.hinge).qpos = initial
+    self._goal = self._goal_start
+    self._show_goal()
     self._error_sum = 0.0
     self._error_count = 0
 
-  def _compute(self, physics) -> None:
-    # The goal advances with time; time is a whole number of control steps.
-    self._goal = self._goal_start + self._velocity * physics.data.time
+  def _show_goal(self) -> None:
     half_yaw = self._goal / 2
-    physics.data.mocap_quat[self._goal_mocap] = (
-      np.cos(half_yaw), 0.0, 0.0, np.sin(half_yaw)
-    )  # fmt: skip
+    self._goal_quat[:] = (math.cos(half_yaw), 0.0, 0.0, math.sin(half_yaw))
 
-    features = self._features
-    sensed_angle = self._sensed_qpos[-1]
-    features['claw_qpos'][:] = self._sensed_qpos[:-1]
-    features['claw_qvel'][:] = self._sensed_qvel[:-1]
-    features['object_x'][0] = np.cos(sensed_angle)
-    features['object_y'][0] = np.sin(sensed_angle)
-    features['object_qvel'][0] = self._sensed_qvel[-1]
-    features['target_error'][0] = base.wrap_angle(self._goal - sensed_angle)
+  def _compute(self, physics) -> tuple[float, ...]:
+    if self._velocity:
+      # The goal moves with time; time is a whole number of control steps.
+      self._goal = self._goal_start + self._velocity * physics.data.time
+      self._show_goal()
+    goal = self._goal
+    sensed_qpos, sensed_qvel = self._sensed_qpos, self._sensed_qvel
+    sensed_angle = float(sensed_qpos[-1])
+    self._claw_qpos_feature[:] = sensed_qpos[:-1]
+    self._claw_qvel_feature[:] = sensed_qvel[:-1]
+    self._object_features[:] = (
+      math.cos(sensed_angle),
+      math.sin(sensed_angle),
+      sensed_qvel[-1],
+    )
+    self._target_error_feature[0] = base.wrap_angle(goal - sensed_angle)
 
-    distance = abs(base.wrap_angle(self._goal - self._qpos[-1]))
+    distance = abs(base.wrap_angle(goal - float(self._qpos[-1])))
     claw_qvel = self._qvel[:-1]
-    terms = self._reward_terms
-    terms[0] = -_TARGET_DIST_WEIGHT * distance
-    terms[1] = -base.norm(self._qpos[:-1] - dclaw.RESET_POSE)
-    terms[2] = -base.norm(claw_qvel[np.abs(claw_qvel) >= _FAST_JOINT_SPEED])
-    terms[3] = _BONUS_SMALL * (distance < _BONUS_SMALL_DISTANCE)
-    terms[4] = _BONUS_BIG * (distance < _BONUS_BIG_DISTANCE)
-    self._score[...] = 1.0 - distance / np.pi
+    pose_diff = np.subtract(self._qpos[:-1], dclaw.RESET_POSE, out=self._diff)
+    fast = np.abs(claw_qvel) >= _FAST_JOINT_SPEED
+    small_bonus = _BONUS_SMALL if distance < _BONUS_SMALL_DISTANCE else 0.0
+    big_bonus = _BONUS_BIG if distance < _BONUS_BIG_DISTANCE else 0.0
+    self._score[...] = 1.0 - distance / math.pi
     self._error_sum += distance
     self._error_count += 1
-    if self._success_on_mean:
-      distance = self._error_sum / self._error_count
-    self._success[...] = distance < self._success_threshold
+    judged = (
+      self._error_sum / self._error_count if self._success_on_mean else distance
+    )
+    self._success[...] = judged < self._success_threshold
+    return (
+      -_TARGET_DIST_WEIGHT * distance,
+      -base.norm(pose_diff),
+      -base.norm(claw_qvel[fast]),
+      small_bonus,
+      big_bonus,
+    )
 
 
 @registry.DCLAW.add(registry.FIXED)
