@@ -278,6 +278,22 @@ class RobelTask(composer.Task):
       [np.ravel(observation[key]) for key in self._agent_keys]
     )
 
+  def reference_action(self, physics) -> np.ndarray:
+    """The action of the task's scripted reference controller.
+
+    Raises:
+      NotImplementedError: if the task has no scripted controller.
+    """
+    del physics
+    raise NotImplementedError(
+      f'{type(self).__name__} has no scripted reference controller'
+    )
+
+  def normalize_joint_targets(self, targets: np.ndarray) -> np.ndarray:
+    """Maps joint angles (rad) to actions in [-1, 1]; inverse of the map."""
+    action = (np.asarray(targets) - self._range_center) / self._range_half
+    return np.clip(action, -1.0, 1.0)
+
   def action_spec(self, physics) -> specs.BoundedArray:
     del physics
     names = [actuator.name for actuator in self._robot.actuators]

@@ -105,6 +105,11 @@ class PoseTask(base.RobelTask):
     """The current goal pose, rad."""
     return self._goal.copy()
 
+  def reference_action(self, physics) -> np.ndarray:
+    """Commands the current goal pose (the robot tracks it)."""
+    del physics
+    return self.normalize_joint_targets(self._goal)
+
   def _initialize_state(self, physics, random_state) -> None:
     pose_a = variation.evaluate(self._initial_pose, random_state=random_state)
     pose_b = variation.evaluate(self._goal_pose, random_state=random_state)

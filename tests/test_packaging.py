@@ -1,0 +1,69 @@
+"""The models reach an installed wheel, and an installed robel_dm finds them."""
+
+import os
+import pathlib
+import shutil
+import subprocess
+import sys
+import zipfile
+
+import pytest
+
+_REPO = pathlib.Path(__file__).resolve().parents[1]
+_MODELS = sorted(
+  path.relative_to(_REPO / 'xml').as_posix()
+  for path in (_REPO / 'xml').rglob('*.xml')
+)
+
+
+@pytest.fixture(scope='module')
+def wheel(tmp_path_factory) -> pathlib.Path:
+  # Build from a copy so that no build artifacts land in the checkout.
+  source = tmp_path_factory.mktemp('source')
+  for name in ('pyproject.toml', 'README.md'):
+    shutil.copy(_REPO / name, source / name)
+  for name in ('robel_dm', 'xml'):
+    shutil.copytree(
+      _REPO / name, source / name, ignore=shutil.ignore_patterns('__pycache__')
+    )
+  out = tmp_path_factory.mktemp('dist')
+  # No isolation: the build backend comes from the dev extra (no network).
+  subprocess.run(
+    [sys.executable, '-m', 'build', '--wheel', '--no-isolation',
+     '--outdir', str(out), str(source)],
+    check=True, capture_output=True,
+  )  # fmt: skip
+  (wheel_path,) = out.glob('robel_dm-*.whl')
+  return wheel_path
+
+
+def test_wheel_contains_every_model(wheel):
+  names = set(zipfile.ZipFile(wheel).namelist())
+  missing = [m for m in _MODELS if f'robel_dm/xml/{m}' not in names]
+  assert _MODELS and not missing
+
+
+def test_installed_wheel_loads_tasks_from_packaged_models(wheel, tmp_path):
+  target = tmp_path / 'site'
+  subprocess.run(
+    [sys.executable, '-m', 'pip', 'install', '--no-deps', '--no-index',
+     '--target', str(target), str(wheel)],
+    check=True, capture_output=True,
+  )  # fmt: skip
+  script = (
+    'import pathlib, robel_dm\n'
+    'from robel_dm import assets, suite\n'
+    'assert pathlib.Path(robel_dm.__file__).is_relative_to(pathlib.Path('
+    f'{str(target)!r})), robel_dm.__file__\n'
+    'print(assets.xml_dir())\n'
+    "env = suite.load('dclaw', 'turn_fixed', task_kwargs={'valve': 'valve4'})\n"
+    'env.reset()\n'
+  )
+  # Run outside the checkout so that only the installed copy is importable.
+  env = dict(os.environ, PYTHONPATH=str(target), MUJOCO_GL='egl')
+  result = subprocess.run(
+    [sys.executable, '-c', script],
+    cwd=tmp_path, env=env, check=True, capture_output=True, text=True,
+  )  # fmt: skip
+  xml_dir = pathlib.Path(result.stdout.strip().splitlines()[-1])
+  assert xml_dir == target / 'robel_dm' / 'xml'
