@@ -42,8 +42,9 @@ class _Updater(updater.Updater):
     )
     if self._lean:
       self._names = tuple(self._enabled_structure)
-      self._callables = tuple(e.observation_callable for e in enabled)
-      self._dtypes = tuple(e.buffer.dtype for e in enabled)
+      self._sources = tuple(
+        (e.observation_callable, e.buffer.dtype) for e in enabled
+      )
       self._latest = [e.buffer.read(0) for e in enabled]
       self._handed_out = False
 
@@ -65,10 +66,7 @@ class _Updater(updater.Updater):
       return
     self._step_counter += 1
     if self._step_counter % self._physics_steps_per_control_step == 0:
-      self._latest = [
-        np.array(get(), dtype=dtype)
-        for get, dtype in zip(self._callables, self._dtypes, strict=True)
-      ]
+      self._latest = [np.array(get(), dtype) for get, dtype in self._sources]
       self._handed_out = False
 
   def get_observation(self):
@@ -119,6 +117,11 @@ class Environment(composer.Environment):
 
   def _prepare_batching(self) -> None:
     self._batch_substeps = self._substeps_are_unobserved()
+    # With no entity or extra step hooks, call the task's hooks directly.
+    self._task_hooks_only = not any(
+      hook.entity_hooks or hook.extra_hooks
+      for hook in (self._hooks._before_step, self._hooks._after_step)
+    )
     physics = self._physics
     # The batched call reproduces dm_control's legacy Euler step; any other
     # stepping mode goes through `physics.step`.
@@ -133,7 +136,7 @@ class Environment(composer.Environment):
 
   def add_extra_hook(self, hook_name, hook_callable):
     super().add_extra_hook(hook_name, hook_callable)
-    self._batch_substeps = self._substeps_are_unobserved()
+    self._prepare_batching()
 
   def reset(self) -> dm_env.TimeStep:
     timestep = super().reset()
@@ -165,7 +168,11 @@ class Environment(composer.Environment):
     if not self._batch_substeps or self._reset_next_step:
       return super().step(action)
 
-    self._hooks.before_step(self._physics_proxy, action, self._random_state)
+    physics, random_state = self._physics_proxy, self._random_state
+    if self._task_hooks_only:
+      self._task.before_step(physics, action, random_state)
+    else:
+      self._hooks.before_step(physics, action, random_state)
     self._observation_updater.prepare_for_next_control_step()
     try:
       self._step_physics()
@@ -175,16 +182,19 @@ class Environment(composer.Environment):
         raise
       physics_is_divergent = True
     self._observation_updater.skip_substeps(self._n_sub_steps - 1)
-    self._hooks.after_step(self._physics_proxy, self._random_state)
+    if self._task_hooks_only:
+      self._task.after_step(physics, random_state)
+    else:
+      self._hooks.after_step(physics, random_state)
     self._observation_updater.update()
 
     if physics_is_divergent:
       reward, discount, terminating = 0.0, 0.0, True
     else:
-      reward = self._task.get_reward(self._physics_proxy)
-      discount = self._task.get_discount(self._physics_proxy)
+      reward = self._task.get_reward(physics)
+      discount = self._task.get_discount(physics)
       terminating = (
-        self._task.should_terminate_episode(self._physics_proxy)
+        self._task.should_terminate_episode(physics)
         or self._data_ptr.time >= self._time_limit
       )
     observation = self._observation_updater.get_observation()

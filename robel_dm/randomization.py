@@ -191,8 +191,14 @@ class DynamicsRandomizer:
       mujoco.mj_setConst(model.ptr, physics.data.ptr)
 
 
-def uniform_noise_halfwidths(
-  low: np.ndarray, high: np.ndarray, fraction: float
-) -> np.ndarray:
-  """ROBEL's observation noise half-widths: fraction * (high - low) / 2."""
-  return fraction * (np.asarray(high) - np.asarray(low)) / 2
+def noise_halfwidths(widths, fraction: float) -> np.ndarray:
+  """ROBEL's observation noise is fraction * U(-0.5, 0.5) * range width.
+
+  Args:
+    widths: widths of the joints' ranges.
+    fraction: ROBEL's `sim_observation_noise`.
+
+  Returns:
+    The half-widths of the uniform noise, fraction * width / 2.
+  """
+  return fraction * np.asarray(widths, dtype=float) / 2

@@ -154,7 +154,9 @@ class RobelTask(composer.Task):
     if self._num_robot_joints != num_actions:
       raise ValueError('the robot needs one position actuator per joint')
     self._target = np.zeros(len(robot.actuators))
-    self._scratch = np.zeros(num_actions)  # Reused to avoid per-step arrays.
+    # Reused buffers, to avoid per-step arrays.
+    self._scratch = np.zeros(num_actions)
+    self._flags = np.zeros(num_actions, dtype=bool)
     # True and sensed (possibly noisy) joint state, robot joints first.
     self._qpos = np.zeros(num_sensed)
     self._qvel = np.zeros(num_sensed)
@@ -187,7 +189,7 @@ class RobelTask(composer.Task):
     if self._last_action.size != num_actions:
       raise ValueError(f'last_action must have {num_actions} entries')
     self._reward = 0.0
-    self._reward_terms = np.zeros(len(self.REWARD_TERMS))
+    self._reward_terms = (0.0,) * len(self.REWARD_TERMS)
     self._score = np.zeros(())
     self._success = np.zeros((), dtype=bool)
     self._safety = np.zeros(len(SAFETY_FIELDS), dtype=np.int32)
@@ -199,7 +201,10 @@ class RobelTask(composer.Task):
     self._add_observable(SCORE, self._score)
     self._add_observable(SUCCESS, self._success)
     self._add_observable(SAFETY, self._safety)
-    self._add_observable(REWARD_TERMS, self._reward_terms, enabled=False)
+    # Built only when enabled: the terms are kept as a tuple of floats.
+    terms = observable.Generic(lambda physics: np.array(self._reward_terms))
+    terms.enabled = False
+    self._task_observables[REWARD_TERMS] = terms
 
   def _feature_span(self, first: str, last: str) -> np.ndarray:
     """A view of the features from `first` to `last` (FEATURES order)."""
@@ -261,9 +266,7 @@ class RobelTask(composer.Task):
   @property
   def reward_terms(self) -> dict[str, float]:
     """The reward's terms at the last step; the reward is their sum."""
-    return dict(
-      zip(self.REWARD_TERMS, self._reward_terms.tolist(), strict=True)
-    )
+    return dict(zip(self.REWARD_TERMS, self._reward_terms, strict=True))
 
   def flatten_observation(self, observation) -> np.ndarray:
     """Concatenates the agent's observations in `agent_observation_keys` order.
@@ -332,25 +335,25 @@ class RobelTask(composer.Task):
     self._data_qpos = physics.data.qpos
     self._data_qvel = physics.data.qvel
     self._data_ctrl = physics.data.ctrl
-    self._position_noise = randomization.uniform_noise_halfwidths(
-      np.concatenate(
-        [self._range_low, np.zeros_like(self._extra_position_widths)]
-      ),
-      np.concatenate([self._range_high, self._extra_position_widths]),
-      self._observation_noise,
-    )
+    self._mjdata = physics.data.ptr  # The raw mujoco.MjData (fast `time`).
+    # ROBEL's noise half-widths per sensed joint: positions over the action
+    # range (given widths for extra joints), velocities over +-max speed.
     speed = self._robot.max_joint_speed
-    self._velocity_noise = randomization.uniform_noise_halfwidths(
-      np.concatenate(
-        [
-          np.full(self._num_robot_joints, -speed),
-          np.zeros_like(self._extra_velocity_widths),
-        ]
-      ),
-      np.concatenate(
-        [np.full(self._num_robot_joints, speed), self._extra_velocity_widths]
-      ),
-      self._observation_noise,
+    position_widths = np.concatenate(
+      [self._range_high - self._range_low, self._extra_position_widths]
+    )
+    velocity_widths = np.concatenate(
+      [np.full(self._num_robot_joints, 2 * speed), self._extra_velocity_widths]
+    )
+    self._noise_halfwidths = np.stack(
+      [
+        randomization.noise_halfwidths(
+          position_widths, self._observation_noise
+        ),
+        randomization.noise_halfwidths(
+          velocity_widths, self._observation_noise
+        ),
+      ]
     )
     if self._randomizer is not None:
       self._randomizer.after_compile(physics)
@@ -404,26 +407,21 @@ class RobelTask(composer.Task):
     self._qpos[:] = self._data_qpos[self._qpos_index]
     self._qvel[:] = self._data_qvel[self._qvel_index]
     if self._observation_noise:
-      size = self._qpos.size
-      self._sensed_qpos[:] = self._qpos + self._position_noise * (
-        random_state.uniform(-1.0, 1.0, size)
-      )
-      self._sensed_qvel[:] = self._qvel + self._velocity_noise * (
-        random_state.uniform(-1.0, 1.0, size)
-      )
-    terms = self._compute(physics)
-    self._reward_terms[:] = terms
+      noise = random_state.uniform(-1.0, 1.0, self._noise_halfwidths.shape)
+      noise *= self._noise_halfwidths
+      np.add(self._qpos, noise[0], out=self._sensed_qpos)
+      np.add(self._qvel, noise[1], out=self._sensed_qvel)
+    self._reward_terms = terms = self._compute(physics)
     self._reward = sum(terms)
     self._update_safety()
 
   def _update_safety(self) -> None:
-    qpos = self._robot_qpos
-    count = np.count_nonzero
-    self._safety[0] = count(qpos < self._safe_low) + count(
-      qpos > self._safe_high
-    )
+    qpos, flags, count = self._robot_qpos, self._flags, np.count_nonzero
+    near_limits = count(np.less(qpos, self._safe_low, out=flags))
+    near_limits += count(np.greater(qpos, self._safe_high, out=flags))
+    self._safety[0] = near_limits
     speed = np.abs(self._robot_qvel, out=self._scratch)
-    self._safety[1] = count(speed > self._max_safe_speed)
+    self._safety[1] = count(np.greater(speed, self._max_safe_speed, out=flags))
     if self._current_measured:
       over = np.abs(self._current) > self._max_safe_current
       self._safety[2] = count(over)

@@ -1,5 +1,7 @@
 """D'Claw Pose: drive the nine joints to a goal pose (robel_facts 2.1)."""
 
+import math
+
 from dm_control.composer import variation
 from dm_control.composer.variation import distributions
 import numpy as np
@@ -137,7 +139,7 @@ class PoseTask(base.RobelTask):
   def _compute(self, physics) -> tuple[float, ...]:
     goal = self._goal
     if self._frequency:
-      phase = np.sin(self._frequency * physics.data.time)
+      phase = math.sin(self._frequency * self._mjdata.time)
       np.multiply(self._goal_amplitude, phase, out=goal)
       goal += self._goal_center
     self._qpos_feature[:] = self._sensed_qpos

@@ -178,7 +178,7 @@ class TurnTask(base.RobelTask):
   def _compute(self, physics) -> tuple[float, ...]:
     if self._velocity:
       # The goal moves with time; time is a whole number of control steps.
-      self._goal = self._goal_start + self._velocity * physics.data.time
+      self._goal = self._goal_start + self._velocity * self._mjdata.time
       self._show_goal()
     goal = self._goal
     sensed_qpos, sensed_qvel = self._sensed_qpos, self._sensed_qvel
