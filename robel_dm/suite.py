@@ -11,13 +11,16 @@ singleton observation dimensions) are the same for every task.
 import difflib
 from typing import Any
 
-from robel_dm import registry
+from robel_dm import constants, registry
 from robel_dm.environment import Environment
 from robel_dm.tasks import (  # noqa: F401  (imported to register the tasks)
   dclaw_pose,
   dclaw_screw,
   dclaw_turn,
 )
+
+# Half a physics step, s: absorbs rounding in the accumulated physics time.
+_TIME_LIMIT_MARGIN = constants.PHYSICS_TIMESTEP / 2
 
 
 def _tagged(tag: str) -> tuple[tuple[str, str], ...]:
@@ -63,7 +66,8 @@ def load(
     task: a task of the domain, e.g. 'turn_fixed' (see `TASKS_BY_DOMAIN`).
     seed: seed of the environment's random state (initial states, goals,
       dynamics and observation noise); None draws one from the OS.
-    time_limit: episode length in seconds; defaults to ROBEL's.
+    time_limit: episode length in seconds; defaults to ROBEL's. The episode
+      ends at the first control step at or after this time.
     task_kwargs: keyword arguments of the task, e.g. `{'valve': 'valve4'}`.
     environment_kwargs: extra `composer.Environment` arguments.
 
@@ -84,6 +88,10 @@ def load(
     raise ValueError(f'bad task_kwargs for {domain}/{task}: {error}') from error
   if time_limit is None:
     time_limit = task_instance.time_limit
+  # composer ends an episode once physics time >= time_limit, and the summed
+  # physics timesteps fall just short of round numbers (40 x 0.1 s sums to
+  # 3.9999...): without this margin a 4 s limit would run 41 steps.
+  time_limit -= _TIME_LIMIT_MARGIN
   return Environment(
     task_instance,
     time_limit=time_limit,

@@ -248,12 +248,8 @@ class RobelTask(composer.Task):
 
   @property
   def time_limit(self) -> float:
-    """Episode length in seconds of physics time.
-
-    Half a control step short of `episode_steps` control steps, so that
-    rounding in the accumulated physics time can never add or drop a step.
-    """
-    return (self._episode_steps - 0.5) * self.control_timestep
+    """Episode length in seconds: `episode_steps` control steps."""
+    return self._episode_steps * self.control_timestep
 
   @property
   def dynamics(self) -> randomization.DynamicsRanges | None:

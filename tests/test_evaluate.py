@@ -1,0 +1,126 @@
+"""Tests of the evaluation CLI and its policies."""
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from robel_dm import evaluate, policies, suite
+
+
+@pytest.mark.parametrize('task', ['pose_fixed', 'pose_random'])
+def test_reference_controller_solves_pose(task):
+  results = evaluate.evaluate('dclaw', task, episodes=20, policy='reference')
+  assert results['success_rate'] >= 0.9
+  assert results['mean_score'] > 0.8
+
+
+def test_metrics_match_a_manual_rollout():
+  seed = 3
+  results = evaluate.evaluate(
+    'dclaw', 'turn_random', episodes=2, policy='zero', seed=seed
+  )
+  env = suite.load('dclaw', 'turn_random', seed=seed)
+  returns, successes, safety = [], [], np.zeros(3)
+  for _ in range(2):
+    timestep = env.reset()
+    total = 0.0
+    while not timestep.last():
+      timestep = env.step(np.zeros(9))
+      total += timestep.reward
+      safety += timestep.observation['safety']
+    returns.append(total)
+    successes.append(bool(timestep.observation['success']))
+  assert results['mean_return'] == pytest.approx(np.mean(returns), abs=1e-9)
+  assert results['success_rate'] == np.mean(successes)
+  assert list(results['safety'].values()) == pytest.approx(safety / 2)
+  assert [r['steps'] for r in results['records']] == [40, 40]
+  assert results['steps_per_second'] > 0
+
+
+def test_random_policy_is_seeded_and_inside_the_bounds():
+  env = suite.load('dclaw', 'pose_fixed', seed=0)
+  first = policies.make_policy('random', env, seed=5)
+  second = policies.make_policy('random', env, seed=5)
+  timestep = env.reset()
+  actions = [first(timestep) for _ in range(50)]
+  assert np.array_equal(actions[0], second(timestep))
+  assert np.all(np.abs(actions) <= 1.0)
+  assert not np.array_equal(actions[0], actions[1])
+
+
+def test_unknown_or_unavailable_policies_raise():
+  env = suite.load('dclaw', 'turn_fixed', seed=0)
+  with pytest.raises(ValueError, match='no scripted reference'):
+    policies.make_policy('reference', env, seed=0)
+  with pytest.raises(ValueError, match="unknown policy 'greedy'"):
+    policies.make_policy('greedy', env, seed=0)
+
+
+@pytest.mark.parametrize(
+  'text, expected',
+  [
+    ('', {}),
+    ('{"valve": "valve4"}', {'valve': 'valve4'}),
+    ('valve=valve4', {'valve': 'valve4'}),
+    ('valve=valve4,action_bounds=clip',
+     {'valve': 'valve4', 'action_bounds': 'clip'}),
+    ('episode_steps=10', {'episode_steps': 10}),
+  ],
+)  # fmt: skip
+def test_parse_task_kwargs(text, expected):
+  assert evaluate.parse_task_kwargs(text) == expected
+
+
+@pytest.mark.parametrize('text', ['{"valve": ', '[1, 2]', 'valve', '=x'])
+def test_parse_task_kwargs_rejects_malformed_text(text):
+  with pytest.raises(ValueError, match='task_kwargs'):
+    evaluate.parse_task_kwargs(text)
+
+
+def _run_cli(*flags, cwd):
+  env = dict(os.environ, MUJOCO_GL='egl')
+  return subprocess.run(
+    [sys.executable, '-m', 'robel_dm.evaluate', *flags],
+    capture_output=True, text=True, cwd=cwd, env=env,
+  )  # fmt: skip
+
+
+def test_cli_prints_a_table_and_writes_json(tmp_path):
+  output = tmp_path / 'results.json'
+  result = _run_cli(
+    '--domain=dclaw', '--task=screw_fixed', '--policy=random',
+    '--episodes=2', '--task_kwargs=valve=valve4', f'--output={output}',
+    cwd=tmp_path,
+  )  # fmt: skip
+  assert result.returncode == 0, result.stderr
+  assert 'success rate' in result.stdout
+  results = json.loads(output.read_text())
+  for key in (
+    'domain', 'task', 'episodes', 'success_rate', 'mean_return',
+    'mean_score', 'safety', 'steps_per_second',
+  ):  # fmt: skip
+    assert key in results
+  assert results['task_kwargs'] == {'valve': 'valve4'}
+  assert set(results['safety']) == {'position', 'velocity', 'current'}
+  assert results['episodes'] == len(results['records']) == 2
+
+
+@pytest.mark.parametrize(
+  'flags, message',
+  [
+    (['--task=turn_fixd'], "unknown dclaw task 'turn_fixd'"),
+    (['--domain=dcat'], "unknown domain 'dcat'"),
+    (['--task=turn_fixed', '--policy=reference'], 'no scripted reference'),
+    (['--task=turn_fixed', '--task_kwargs=valve=valve5'], 'unknown valve'),
+    (['--policy=greedy'], 'policy'),
+    (['--episodes=0'], 'episodes'),
+  ],
+)
+def test_cli_rejects_bad_input_with_a_clear_message(flags, message, tmp_path):
+  result = _run_cli(*flags, cwd=tmp_path)
+  assert result.returncode != 0
+  assert message in result.stderr
