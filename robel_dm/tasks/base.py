@@ -189,6 +189,7 @@ class RobelTask(composer.Task):
     if self._last_action.size != num_actions:
       raise ValueError(f'last_action must have {num_actions} entries')
     self._reward = 0.0
+    self._error_sum, self._error_count = 0.0, 0
     self._reward_terms = (0.0,) * len(self.REWARD_TERMS)
     self._score = np.zeros(())
     self._success = np.zeros((), dtype=bool)
@@ -358,6 +359,7 @@ class RobelTask(composer.Task):
     if self._randomizer is not None:
       self._randomizer.apply(physics, random_state)
     self._last_action[:] = 0.0
+    self._error_sum, self._error_count = 0.0, 0
     self._initialize_state(physics, random_state)
     self._update(physics, random_state)
 
@@ -410,6 +412,16 @@ class RobelTask(composer.Task):
     self._reward_terms = terms = self._compute(physics)
     self._reward = sum(terms)
     self._update_safety()
+
+  def _episode_mean(self, error: float) -> float:
+    """Adds this step's error to the episode's and returns their mean.
+
+    ROBEL's success evaluators for Pose and Screw judge the mean tracking
+    error of the whole episode, reset state included.
+    """
+    self._error_sum += error
+    self._error_count += 1
+    return self._error_sum / self._error_count
 
   def _update_safety(self) -> None:
     qpos, flags, count = self._robot_qpos, self._flags, np.count_nonzero

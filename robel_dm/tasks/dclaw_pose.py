@@ -83,8 +83,6 @@ class PoseTask(base.RobelTask):
     self._frequency = 0.0
     self._goal = np.zeros(9)
     self._error = np.zeros(9)
-    self._error_sum = 0.0
-    self._error_count = 0
     super().__init__(
       arena=arena,
       robot=claw,
@@ -133,8 +131,6 @@ class PoseTask(base.RobelTask):
     self._goal[:] = self._goal_center  # The goal at time 0.
     physics.bind(self.robot.joints).qpos = initial
     physics.bind(self.robot.actuators).ctrl = initial
-    self._error_sum = 0.0
-    self._error_count = 0
 
   def _compute(self, physics) -> tuple[float, ...]:
     goal = self._goal
@@ -153,11 +149,7 @@ class PoseTask(base.RobelTask):
     joint_vel_cost = -_JOINT_VEL_COST_WEIGHT * base.norm(qvel[fast])
     mean_error = float(np.abs(error, out=error).sum()) / error.size
     self._score[...] = 1.0 - min(mean_error / _POINTS_ERROR_SCALE, 1.0)
-    # ROBEL's success evaluator: the episode's mean tracking error.
-    self._error_sum += mean_error
-    self._error_count += 1
-    mean_tracking_error = self._error_sum / self._error_count
-    self._success[...] = mean_tracking_error < _SUCCESS_THRESHOLD
+    self._success[...] = self._episode_mean(mean_error) < _SUCCESS_THRESHOLD
     return (pose_error_cost, joint_vel_cost)
 
 
@@ -181,10 +173,7 @@ def pose_random(**kwargs) -> PoseTask:
 @registry.DCLAW.add(registry.RANDOM_DYNAMICS)
 def pose_random_dynamics(**kwargs) -> PoseTask:
   """pose_random with randomized joint dynamics and observation noise."""
-  return PoseTask(
-    initial_pose=RANDOM_POSE,
-    goal_pose=RANDOM_POSE,
-    goal_frequency=_GOAL_FREQUENCY,
+  return pose_random(
     dynamics=randomization.DCLAW_POSE,
     observation_noise=constants.OBSERVATION_NOISE_FRACTION,
     **kwargs,

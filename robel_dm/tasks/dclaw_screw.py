@@ -45,9 +45,7 @@ def screw_random(**kwargs) -> dclaw_turn.TurnTask:
 @registry.DCLAW.add(registry.RANDOM_DYNAMICS)
 def screw_random_dynamics(**kwargs) -> dclaw_turn.TurnTask:
   """screw_random with randomized dynamics and observation noise."""
-  return _screw(
-    initial_angle=_RANDOM_INITIAL_ANGLE,
-    goal_velocity=_RANDOM_GOAL_VELOCITY,
+  return screw_random(
     dynamics=randomization.DCLAW_VALVE,
     observation_noise=constants.OBSERVATION_NOISE_FRACTION,
     **kwargs,

@@ -107,8 +107,6 @@ class TurnTask(base.RobelTask):
     self._goal_start = 0.0
     self._velocity = 0.0
     self._goal = 0.0
-    self._error_sum = 0.0
-    self._error_count = 0
     super().__init__(
       arena=arena,
       robot=claw,
@@ -168,8 +166,6 @@ class TurnTask(base.RobelTask):
     physics.bind(self._valve.hinge).qpos = initial
     self._goal = self._goal_start
     self._show_goal()
-    self._error_sum = 0.0
-    self._error_count = 0
 
   def _show_goal(self) -> None:
     half_yaw = self._goal / 2
@@ -199,11 +195,8 @@ class TurnTask(base.RobelTask):
     small_bonus = _BONUS_SMALL if distance < _BONUS_SMALL_DISTANCE else 0.0
     big_bonus = _BONUS_BIG if distance < _BONUS_BIG_DISTANCE else 0.0
     self._score[...] = 1.0 - distance / math.pi
-    self._error_sum += distance
-    self._error_count += 1
-    judged = (
-      self._error_sum / self._error_count if self._success_on_mean else distance
-    )
+    mean_distance = self._episode_mean(distance)
+    judged = mean_distance if self._success_on_mean else distance
     self._success[...] = judged < self._success_threshold
     return (
       -_TARGET_DIST_WEIGHT * distance,
@@ -231,9 +224,7 @@ def turn_random(**kwargs) -> TurnTask:
 @registry.DCLAW.add(registry.RANDOM_DYNAMICS)
 def turn_random_dynamics(**kwargs) -> TurnTask:
   """turn_random with randomized dynamics and observation noise."""
-  return TurnTask(
-    initial_angle=_RANDOM_INITIAL_ANGLE,
-    goal_angle=_RANDOM_GOAL_ANGLE,
+  return turn_random(
     dynamics=randomization.DCLAW_VALVE,
     observation_noise=constants.OBSERVATION_NOISE_FRACTION,
     **kwargs,
