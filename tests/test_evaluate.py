@@ -15,7 +15,9 @@ from robel_dm import evaluate, policies, suite
 def test_reference_controller_solves_pose(task):
   results = evaluate.evaluate('dclaw', task, episodes=20, policy='reference')
   assert results['success_rate'] >= 0.9
-  assert results['mean_score'] > 0.8
+  assert results['mean_score'] > 0.7
+  # It moves the joints slower than the velocity safety limit.
+  assert results['safety']['velocity'] == 0
 
 
 def test_metrics_match_a_manual_rollout():

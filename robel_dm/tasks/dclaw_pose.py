@@ -25,6 +25,10 @@ _JOINT_VEL_COST_WEIGHT = 0.1
 _GOAL_FREQUENCY = distributions.Uniform(0.5, 2.0)
 _MAX_GOAL_SPEED = np.pi / 6
 
+# Joint speed of the reference controller's commands, rad/s: below the 1 rad/s
+# of the velocity safety counter.
+_REFERENCE_SPEED = 0.8
+
 # ROBEL's random-pose sampler: the action ranges, except that the middle
 # joints are never bent outwards (upper bound 0), rad.
 _POSE_LOW = np.tile([-0.48, -np.pi / 3, -np.pi / 2], 3)
@@ -106,9 +110,16 @@ class PoseTask(base.RobelTask):
     return self._goal.copy()
 
   def reference_action(self, physics) -> np.ndarray:
-    """Commands the current goal pose (the robot tracks it)."""
+    """Moves every joint towards the goal, slower than the safety limit.
+
+    Commanding the goal outright would move the joints at the action clamp's
+    2pi/3 rad/s, which the velocity safety counter flags (limit 1 rad/s).
+    """
     del physics
-    return self.normalize_joint_targets(self._goal)
+    max_step = _REFERENCE_SPEED * self.control_timestep
+    qpos = self._robot_qpos
+    step = np.clip(self._goal - qpos, -max_step, max_step)
+    return self.normalize_joint_targets(qpos + step)
 
   def _initialize_state(self, physics, random_state) -> None:
     pose_a = variation.evaluate(self._initial_pose, random_state=random_state)
