@@ -92,6 +92,17 @@ class Environment(composer.Environment):
     kwargs.setdefault('strip_singleton_obs_buffer_dim', True)
     self._batch_substeps = False
     super().__init__(task, **kwargs)
+    # The constructor has compiled the model. composer compiles it again at
+    # the first reset, to run `initialize_episode_mjcf` hooks first; when
+    # there are none and the model is never recompiled, skip that second
+    # compile so `env.physics` stays valid from construction on.
+    if not (
+      self._recompile_mjcf_every_episode
+      or type(task).initialize_episode_mjcf
+      is not composer.Task.initialize_episode_mjcf
+      or self._hooks._initialize_episode_mjcf.entity_hooks
+    ):
+      self._mjcf_never_compiled = False
 
   def _make_observation_updater(self):
     pad = (

@@ -26,7 +26,6 @@ SCORE = 'score'
 SUCCESS = 'success'
 SAFETY = 'safety'
 REWARD_TERMS = 'reward_terms'
-SIGNAL_KEYS = (SCORE, SUCCESS, SAFETY)
 
 # Order of the counters in the `safety` observation.
 SAFETY_FIELDS = ('position', 'velocity', 'current')
@@ -118,6 +117,8 @@ class RobelTask(composer.Task):
       raise ValueError(f'observation_noise must be >= 0: {observation_noise}')
     if episode_steps <= 0:
       raise ValueError(f'episode_steps must be positive: {episode_steps}')
+    if isinstance(observation_keys, str):
+      observation_keys = (observation_keys,)
     keys = tuple(observation_keys or self.DEFAULT_OBSERVATION_KEYS)
     unknown = [key for key in keys if key not in self.FEATURES]
     if unknown:
@@ -153,7 +154,7 @@ class RobelTask(composer.Task):
     self._num_robot_joints = len(robot.joints)
     if self._num_robot_joints != num_actions:
       raise ValueError('the robot needs one position actuator per joint')
-    self._target = np.zeros(len(robot.actuators))
+    self._target = np.zeros(num_actions)
     # Reused buffers, to avoid per-step arrays.
     self._scratch = np.zeros(num_actions)
     self._flags = np.zeros(num_actions, dtype=bool)
