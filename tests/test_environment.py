@@ -254,3 +254,12 @@ def test_physics_divergence_ends_the_episode_when_not_raising(hooked):
   assert timestep.last()
   assert timestep.reward == 0.0 and timestep.discount == 0.0
   assert env.step(np.zeros(9)).first()
+
+
+def test_model_is_compiled_once_and_physics_survives_the_first_reset():
+  env = suite.load('dclaw', 'turn_fixed', seed=0)
+  physics = env.physics  # A weak proxy: dead if the model were recompiled.
+  env.reset()
+  env.step(np.zeros(9))
+  assert physics.data.time > 0.0
+  assert physics.model.nq == env.physics.model.nq
