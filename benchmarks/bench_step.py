@@ -90,6 +90,7 @@ def main():
   parser.add_argument('--rounds', type=int, default=7)
   parser.add_argument('--resets', type=int, default=20)
   parser.add_argument('--domain', default=None)
+  parser.add_argument('--task', default=None, help='only tasks containing this')
   parser.add_argument('--json', default=None, help='write results here')
   args = parser.parse_args()
   rows = []
@@ -101,6 +102,8 @@ def main():
   print('-' * len(header))
   for domain, task in suite.ALL_TASKS:
     if args.domain and domain != args.domain:
+      continue
+    if args.task and args.task not in task:
       continue
     row = bench_task(domain, task, args.steps, args.rounds, args.resets)
     rows.append(row)

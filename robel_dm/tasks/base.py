@@ -443,8 +443,11 @@ class RobelTask(composer.Task):
         f'action has shape {action.shape}, expected {expected} '
         '(one normalized joint target in [-1, 1] per actuator)'
       )
-    # One reduction covers the common case; NaN fails the comparison too.
-    if np.abs(action, out=self._scratch).max() <= 1.0:
+    # One comparison covers the common case; NaN fails it too.
+    in_bounds = np.less_equal(
+      np.abs(action, out=self._scratch), 1.0, out=self._flags
+    )
+    if np.count_nonzero(in_bounds) == in_bounds.size:
       return action
     finite = np.isfinite(action)
     if not finite.all():

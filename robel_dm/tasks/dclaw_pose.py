@@ -87,6 +87,10 @@ class PoseTask(base.RobelTask):
     self._frequency = 0.0
     self._goal = np.zeros(9)
     self._error = np.zeros(9)
+    self._abs_error = np.zeros(9)
+    self._speed_squared = np.zeros(9)
+    self._fast = np.zeros(9, dtype=bool)
+    self._joint_weights = np.full(9, 1 / 9)  # Means as dot products (faster).
     super().__init__(
       arena=arena,
       robot=claw,
@@ -153,12 +157,17 @@ class PoseTask(base.RobelTask):
     self._qvel_feature[:] = self._sensed_qvel
     np.subtract(goal, self._sensed_qpos, out=self._qpos_error_feature)
 
-    error = np.subtract(goal, self._qpos, out=self._error)
-    qvel = self._qvel
-    fast = np.abs(qvel) >= _FAST_JOINT_SPEED
+    error = self._qpos_error_feature
+    if self.observation_noise:  # Rewards use the true error.
+      error = np.subtract(goal, self._qpos, out=self._error)
+    speed_squared = np.square(self._qvel, out=self._speed_squared)
+    fast = np.greater_equal(speed_squared, _FAST_JOINT_SPEED**2, out=self._fast)
     pose_error_cost = -base.norm(error)
-    joint_vel_cost = -_JOINT_VEL_COST_WEIGHT * base.norm(qvel[fast])
-    mean_error = float(np.abs(error, out=error).sum()) / error.size
+    joint_vel_cost = -_JOINT_VEL_COST_WEIGHT * math.sqrt(
+      np.dot(speed_squared, fast)
+    )
+    abs_error = np.abs(error, out=self._abs_error)
+    mean_error = float(np.dot(abs_error, self._joint_weights))
     self._score[...] = 1.0 - min(mean_error / _POINTS_ERROR_SCALE, 1.0)
     self._success[...] = self._episode_mean(mean_error) < _SUCCESS_THRESHOLD
     return (pose_error_cost, joint_vel_cost)
