@@ -85,6 +85,22 @@ DCLAW_VALVE = dataclasses.replace(
 )
 
 
+DKITTY_STAND = DynamicsRanges(
+  damping=Range(0.1, 0.2),
+  damping_shared=True,
+  friction_loss=Range(0.001, 0.005),
+  friction_loss_shared=True,
+  actuator_kp=Range(2.0, 4.0),
+  geom_friction=_ROBEL_GEOM_FRICTION,
+  total_mass=Range(1.6, 2.0),
+)
+
+# Orient and Walk draw the servo gain from a narrower range.
+DKITTY_LOCOMOTION = dataclasses.replace(
+  DKITTY_STAND, actuator_kp=Range(2.8, 3.2)
+)
+
+
 @dataclasses.dataclass(frozen=True)
 class Targets:
   """The model elements a randomizer acts on.

@@ -9,5 +9,6 @@ RANDOM_DYNAMICS = 'random_dynamics'
 TAGS = (FIXED, RANDOM, RANDOM_DYNAMICS)
 
 DCLAW = containers.TaggedTasks()
+DKITTY = containers.TaggedTasks()
 
-DOMAINS = {'dclaw': DCLAW}
+DOMAINS = {'dclaw': DCLAW, 'dkitty': DKITTY}

@@ -17,6 +17,9 @@ from robel_dm.tasks import (  # noqa: F401  (imported to register the tasks)
   dclaw_pose,
   dclaw_screw,
   dclaw_turn,
+  dkitty_orient,
+  dkitty_stand,
+  dkitty_walk,
 )
 
 # Half a physics step, s: absorbs rounding in the accumulated physics time.
@@ -62,7 +65,7 @@ def load(
   """Builds a task's environment.
 
   Args:
-    domain: 'dclaw'.
+    domain: 'dclaw' or 'dkitty'.
     task: a task of the domain, e.g. 'turn_fixed' (see `TASKS_BY_DOMAIN`).
     seed: seed of the environment's random state (initial states, goals,
       dynamics and observation noise); None draws one from the OS.

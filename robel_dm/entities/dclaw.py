@@ -1,12 +1,11 @@
 """The D'Claw: a 9-DoF three-finger hand of Dynamixel XH430 servos."""
 
-import dataclasses
-
 from dm_control import composer, mjcf
 from dm_control.composer.observation import observable
 import numpy as np
 
 from robel_dm import assets
+from robel_dm.entities import limits
 
 # Joints in action order; motor IDs are the digits (robel_facts 3.2, 4.1).
 JOINT_NAMES = (
@@ -24,24 +23,8 @@ MAX_JOINT_SPEED = 2 * np.pi / 3
 RESET_POSE = np.tile([0.0, -np.pi / 3, np.pi / 3], 3)
 
 
-@dataclasses.dataclass(frozen=True)
-class SafetyLimits:
-  """Thresholds of ROBEL's hardware-safety counters (robel_facts 2.3).
-
-  Attributes:
-    position_margin: a joint closer than this to either end of its action
-      range counts as a position violation, rad.
-    max_speed: a joint faster than this counts as a velocity violation, rad/s.
-    max_current: a motor drawing more than this counts as a current
-      violation, mA.
-  """
-
-  position_margin: float
-  max_speed: float
-  max_current: float
-
-
-SAFETY_LIMITS = SafetyLimits(
+# ROBEL's D'Claw safety thresholds (robel_facts 2.3).
+SAFETY_LIMITS = limits.SafetyLimits(
   position_margin=np.deg2rad(5.0), max_speed=1.0, max_current=200.0
 )
 
@@ -93,7 +76,7 @@ class DClaw(composer.Robot):
     return MAX_JOINT_SPEED
 
   @property
-  def safety_limits(self) -> SafetyLimits:
+  def safety_limits(self) -> limits.SafetyLimits:
     return SAFETY_LIMITS
 
 

@@ -46,6 +46,12 @@ def norm(vector: np.ndarray) -> float:
   return math.sqrt(float(np.dot(vector, vector)))
 
 
+def mocap_index(physics, body: mjcf.Element) -> int:
+  """Index of a mocap body in `data.mocap_pos` / `data.mocap_quat`."""
+  body_id = physics.model.name2id(body.full_identifier, 'body')
+  return int(physics.model.body_mocapid[body_id])
+
+
 def _address_index(addresses) -> slice | np.ndarray:
   """A slice if the addresses are contiguous and increasing (cheaper reads)."""
   addresses = np.asarray(addresses, dtype=int).ravel()
@@ -154,7 +160,7 @@ class RobelTask(composer.Task):
     self._num_robot_joints = len(robot.joints)
     if self._num_robot_joints != num_actions:
       raise ValueError('the robot needs one position actuator per joint')
-    self._target = np.zeros(num_actions)
+    self._ctrl_target = np.zeros(num_actions)
     # Reused buffers, to avoid per-step arrays.
     self._scratch = np.zeros(num_actions)
     self._flags = np.zeros(num_actions, dtype=bool)
@@ -190,6 +196,8 @@ class RobelTask(composer.Task):
     if self._last_action.size != num_actions:
       raise ValueError(f'last_action must have {num_actions} entries')
     self._reward = 0.0
+    # Set by `_compute` when the episode has failed and must end.
+    self._failed = False
     self._error_sum, self._error_count = 0.0, 0
     self._reward_terms = (0.0,) * len(self.REWARD_TERMS)
     self._score = np.zeros(())
@@ -252,6 +260,11 @@ class RobelTask(composer.Task):
   def time_limit(self) -> float:
     """Episode length in seconds: `episode_steps` control steps."""
     return self._episode_steps * self.control_timestep
+
+  @property
+  def settle_substeps(self) -> int:
+    """Physics steps a reset runs to let the robot settle (0: none)."""
+    return 0
 
   @property
   def dynamics(self) -> randomization.DynamicsRanges | None:
@@ -325,8 +338,13 @@ class RobelTask(composer.Task):
     self._range_half = (self._range_high - self._range_low) / 2
     self._max_step = self._robot.max_joint_speed * self.control_timestep
     limits = self._robot.safety_limits
-    self._safe_low = self._range_low + limits.position_margin
-    self._safe_high = self._range_high - limits.position_margin
+    if limits.position_range == 'joint':
+      position_range = physics.bind(self._robot.joints).range
+      low, high = position_range[:, 0].copy(), position_range[:, 1].copy()
+    else:
+      low, high = self._range_low, self._range_high
+    self._safe_low = low + limits.position_margin
+    self._safe_high = high - limits.position_margin
     self._max_safe_speed = limits.max_speed
     self._max_safe_current = limits.max_current
     # The hot path reads and writes these views of MjData directly.
@@ -361,12 +379,17 @@ class RobelTask(composer.Task):
       self._randomizer.apply(physics, random_state)
     self._last_action[:] = 0.0
     self._error_sum, self._error_count = 0.0, 0
+    self._failed = False
     self._initialize_state(physics, random_state)
     self._update(physics, random_state)
 
   def before_step(self, physics, action, random_state) -> None:
     del random_state
-    last_action, target, delta = self._last_action, self._target, self._scratch
+    last_action, target, delta = (
+      self._last_action,
+      self._ctrl_target,
+      self._scratch,
+    )
     last_action[:] = self._validated_action(action)
     # ROBEL's action map: denormalize to the joint range, then limit the
     # change from the current position to max_speed * control_timestep.
@@ -386,6 +409,15 @@ class RobelTask(composer.Task):
     del physics
     return self._reward
 
+  def should_terminate_episode(self, physics) -> bool:
+    del physics
+    return self._failed
+
+  def get_discount(self, physics) -> float:
+    # A failure (e.g. a fall) is terminal; a time limit is not.
+    del physics
+    return 0.0 if self._failed else 1.0
+
   # --- Subclass interface --------------------------------------------------
 
   def _initialize_state(self, physics, random_state) -> None:
@@ -394,6 +426,8 @@ class RobelTask(composer.Task):
 
   def _compute(self, physics) -> tuple[float, ...]:
     """Fills the features, `_score` and `_success`; returns the reward terms.
+
+    Sets `_failed` when the episode must end (discount 0).
 
     Reads `_qpos`/`_qvel` (true state) and `_sensed_qpos`/`_sensed_qvel`
     (what the agent observes). Called once per control step and at reset.

@@ -143,11 +143,8 @@ class TurnTask(base.RobelTask):
 
   def after_compile(self, physics, random_state) -> None:
     super().after_compile(physics, random_state)
-    body_id = physics.model.name2id(
-      self.arena.goal_body.full_identifier, 'body'
-    )
-    mocap_id = physics.model.body_mocapid[body_id]
-    self._goal_quat = physics.data.mocap_quat[mocap_id]  # A view.
+    goal = base.mocap_index(physics, self.arena.goal_body)
+    self._goal_quat = physics.data.mocap_quat[goal]  # A view.
 
   def _initialize_state(self, physics, random_state) -> None:
     initial = float(

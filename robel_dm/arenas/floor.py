@@ -1,0 +1,83 @@
+"""The D'Kitty's arena: a floor, optionally with a random heightfield."""
+
+from dm_control import composer, mjcf
+import mujoco
+import numpy as np
+
+from robel_dm import assets, randomization
+
+# ROBEL's terrain: every heightfield cell is drawn from this range, m.
+TERRAIN_HEIGHT = randomization.Range(0.0, 0.05)
+
+
+class KittyFloor(composer.Arena):
+  """A plane floor; with `terrain`, a heightfield regenerated per episode."""
+
+  def _build(self, terrain: bool = False, name: str = 'floor') -> None:
+    """Builds the arena.
+
+    Args:
+      terrain: add ROBEL's random heightfield (RandomDynamics variants).
+      name: model name.
+    """
+    path = assets.xml_path('arenas', 'kitty_floor.xml')
+    self._mjcf_root = mjcf.from_path(str(path))
+    self._mjcf_root.model = name
+    self._terrain = terrain
+    self._hfield = self._mjcf_root.find('hfield', 'terrain')
+    if not terrain:
+      # The flat variants have no heightfield at all (ROBEL's stayed zero,
+      # hidden below the plane).
+      self._mjcf_root.find('geom', 'terrain').remove()
+      self._hfield.remove()
+      self._hfield = None
+
+  @property
+  def has_terrain(self) -> bool:
+    return self._terrain
+
+  def add_marker(
+    self, name: str, size, rgba, site_type: str = 'cylinder'
+  ) -> mjcf.Element:
+    """Adds a non-colliding marker on a mocap body and returns the body.
+
+    Tasks move markers by writing `data.mocap_pos`, never the model.
+    """
+    body = self._mjcf_root.worldbody.add('body', name=name, mocap=True)
+    body.add('site', name=name, type=site_type, size=size, rgba=rgba, group=0)
+    return body
+
+  def after_compile(self, physics, random_state) -> None:
+    del random_state
+    if self._hfield is None:
+      return
+    hfield = physics.bind(self._hfield)
+    self._hfield_id = int(hfield.element_id)
+    start = int(hfield.adr)
+    size = int(hfield.nrow) * int(hfield.ncol)
+    self._heights = physics.model.hfield_data[start : start + size]  # A view.
+
+  def regenerate(
+    self, physics: mjcf.Physics, random_state: np.random.RandomState
+  ) -> None:
+    """Draws new terrain heights (no-op without terrain)."""
+    if self._hfield is None:
+      return
+    self._heights[:] = TERRAIN_HEIGHT.sample(random_state, self._heights.size)
+    # A renderer keeps its own copy of the heightfield. Only refresh one that
+    # already exists: `physics.contexts` would create a GL context, which
+    # crashes on a headless machine.
+    contexts = physics._contexts  # noqa: SLF001
+    if contexts:
+      with contexts.gl.make_current() as ctx:
+        ctx.call(
+          mujoco.mjr_uploadHField,
+          physics.model.ptr,
+          contexts.mujoco.ptr,
+          self._hfield_id,
+        )
+
+  @property
+  def terrain_heights(self) -> np.ndarray | None:
+    """The current heightfield heights, m (a view), or None."""
+    return None if self._hfield is None else self._heights

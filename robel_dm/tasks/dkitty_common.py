@@ -1,0 +1,254 @@
+"""Pieces shared by the D'Kitty tasks: scene, torso state and uprightness.
+
+The D'Kitty's root is a free joint. ROBEL's root was six joints (three slides,
+then hinges about x, y and z) on a frame 0.3 m above the floor, and its torso
+observations are kept with their meanings and units:
+  * `root_pos`: torso position relative to that frame origin (0, 0, 0.3), m;
+  * `root_euler`: rotating-frame x-y-z Euler angles of the torso, rad
+    (R = Rx(a) Ry(b) Rz(c), transforms3d's 'rxyz');
+  * `root_vel`: world linear velocity, m/s;
+  * `root_angular_vel`: rates of those Euler angles, rad/s (ROBEL read its
+    hinge velocities, which are exactly these rates);
+  * `upright`: cosine between the torso z-axis and world z.
+"""
+
+import dataclasses
+import math
+
+from dm_control import mjcf
+import numpy as np
+
+from robel_dm import constants, randomization
+from robel_dm.arenas import floor
+from robel_dm.entities import dkitty
+
+# Observation features every D'Kitty task has, in ROBEL's observation-dict
+# order; the first five come from the torso, contiguously.
+TORSO_FEATURES = {
+  'upright': 1,
+  'root_pos': 3,
+  'root_euler': 3,
+  'root_vel': 3,
+  'root_angular_vel': 3,
+}
+FEATURES = {
+  **TORSO_FEATURES,
+  'kitty_qpos': 12,
+  'kitty_qvel': 12,
+  'last_action': 12,
+}
+# The part of ROBEL's default flattened observation all D'Kitty tasks share.
+DEFAULT_OBSERVATION_KEYS = (
+  'root_pos', 'root_euler', 'kitty_qpos', 'root_vel', 'root_angular_vel',
+  'kitty_qvel', 'last_action', 'upright',
+)  # fmt: skip
+
+# Below this |cos(pitch)| the Euler rates are undefined (gimbal lock); the
+# rates are computed with the cosine clamped to it.
+_MIN_COS_PITCH = 1e-6
+
+
+@dataclasses.dataclass(frozen=True)
+class Upright:
+  """ROBEL's uprightness terms and falling condition (robel_facts 2.4).
+
+  Attributes:
+    threshold: the robot has fallen when `upright` drops below this.
+    reward: weight of (upright - threshold) / (1 - threshold).
+    falling_reward: added (a penalty) once fallen.
+  """
+
+  threshold: float
+  reward: float
+  falling_reward: float
+
+  def terms(self, upright: float) -> tuple[float, float]:
+    """Returns the (upright, falling) reward terms."""
+    scale = (upright - self.threshold) / (1.0 - self.threshold)
+    falling = self.falling_reward if upright < self.threshold else 0.0
+    return self.reward * scale, falling
+
+  def fallen(self, upright: float) -> bool:
+    return upright < self.threshold
+
+
+def euler_xyz(rotation) -> tuple[float, float, float]:
+  """Rotating-frame x-y-z Euler angles (a, b, c) of R = Rx(a) Ry(b) Rz(c).
+
+  Args:
+    rotation: a 3x3 rotation matrix (nested sequences or an array).
+  """
+  (r00, r01, r02), (_, _, r12), (_, _, r22) = rotation
+  pitch = math.atan2(r02, math.hypot(r00, r01))
+  return math.atan2(-r12, r22), pitch, math.atan2(-r01, r00)
+
+
+def euler_xyz_rates(euler, angular_velocity_world) -> tuple[float, ...]:
+  """Rates of rotating x-y-z Euler angles for a world angular velocity.
+
+  With R = Rx(a) Ry(b) Rz(c): w = (1,0,0) da + Rx(a) (0,1,0) db
+  + Rx(a) Ry(b) (0,0,1) dc, solved for (da, db, dc).
+  """
+  roll, pitch, _ = euler
+  wx, wy, wz = angular_velocity_world
+  sin_roll, cos_roll = math.sin(roll), math.cos(roll)
+  cos_pitch = math.cos(pitch)
+  if abs(cos_pitch) < _MIN_COS_PITCH:
+    cos_pitch = math.copysign(_MIN_COS_PITCH, cos_pitch)
+  yaw_rate = (cos_roll * wz - sin_roll * wy) / cos_pitch
+  pitch_rate = cos_roll * wy + sin_roll * wz
+  roll_rate = wx - math.sin(pitch) * yaw_rate
+  return roll_rate, pitch_rate, yaw_rate
+
+
+def yaw_quaternion(yaw: float) -> np.ndarray:
+  return np.array([math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)])
+
+
+class Scene:
+  """The D'Kitty on its free joint in a `KittyFloor` arena."""
+
+  def __init__(self, terrain: bool):
+    self.arena = floor.KittyFloor(terrain=terrain)
+    self.robot = dkitty.DKitty()
+    frame = self.arena.add_free_entity(self.robot)
+    # The free joint's default pose: standing height, so that a data reset
+    # does not sink the legs into the floor (a costly contact solve).
+    frame.pos = dkitty.ROBEL_FRAME_ORIGIN
+    self.root_joint = frame.freejoint
+
+
+class Torso:
+  """Reads the torso's pose and velocity from the free joint and `xmat`."""
+
+  def __init__(self, scene: Scene):
+    self._root_joint = scene.root_joint
+    self._torso = scene.robot.torso
+    self.position = np.zeros(3)  # World position, m.
+    self.rotation = np.eye(3)  # Torso-to-world rotation.
+
+  def after_compile(self, physics: mjcf.Physics) -> None:
+    root = physics.bind(self._root_joint)
+    qpos, dof = int(root.qposadr), int(root.dofadr)
+    self._qpos = physics.data.qpos[qpos : qpos + 7]  # Views of MjData.
+    self._qvel = physics.data.qvel[dof : dof + 6]
+    body = int(physics.bind(self._torso).element_id)
+    self._xmat = physics.data.xmat[body].reshape(3, 3)
+
+  def place(self, position, yaw: float) -> None:
+    """Puts the torso at `position` (world, m), level, turned by `yaw`."""
+    self._qpos[:3] = position
+    self._qpos[3:] = yaw_quaternion(yaw)
+    self._qvel[:] = 0.0
+
+  def update(self, out: np.ndarray) -> None:
+    """Reads the torso and writes the torso features.
+
+    Args:
+      out: 13 values, `TORSO_FEATURES` in order (upright, root_pos,
+        root_euler, root_vel, root_angular_vel).
+    """
+    self.position[:] = self._qpos[:3]
+    self.rotation[:] = self._xmat
+    rotation = self.rotation.tolist()
+    euler = euler_xyz(rotation)
+    # The free joint's angular velocity is in the torso frame.
+    angular_velocity = np.dot(self.rotation, self._qvel[3:])
+    position = self.position - dkitty.ROBEL_FRAME_ORIGIN
+    out[:] = (
+      rotation[2][2],
+      *position,
+      *euler,
+      *self._qvel[:3],
+      *euler_xyz_rates(euler, angular_velocity.tolist()),
+    )
+
+  @property
+  def upright(self) -> float:
+    return float(self.rotation[2, 2])
+
+  @property
+  def facing(self) -> np.ndarray:
+    """The torso's forward (y) axis projected on the floor (not unit)."""
+    return self.rotation[:2, 1]
+
+
+def cosine(a: np.ndarray, b: np.ndarray) -> float:
+  """Cosine of the angle between two vectors (0 if either is zero)."""
+  denominator = math.sqrt(float(np.dot(a, a)) * float(np.dot(b, b)))
+  return float(np.dot(a, b)) / denominator if denominator > 0 else 0.0
+
+
+class KittyParts:
+  """What every D'Kitty task does the same way, for composition in a task.
+
+  Builds the scene, places the robot at reset (regenerating the terrain),
+  and reads the torso and legs into the shared features once per step.
+  """
+
+  def __init__(self, terrain: bool, upright: Upright):
+    self.scene = Scene(terrain=terrain)
+    self.torso = Torso(self.scene)
+    self.upright = upright
+
+  @property
+  def arena(self) -> floor.KittyFloor:
+    return self.scene.arena
+
+  @property
+  def robot(self) -> dkitty.DKitty:
+    return self.scene.robot
+
+  def robel_task_arguments(self) -> dict:
+    """Arguments of `RobelTask.__init__` that are the same for every task."""
+    robot = self.robot
+    return {
+      'arena': self.arena,
+      'robot': robot,
+      'control_timestep': constants.CONTROL_TIMESTEP,
+      'randomizer_targets': randomization.Targets(
+        joints=robot.joints, actuators=robot.actuators
+      ),
+    }
+
+  def bind_features(self, torso_span: np.ndarray, joint_span: np.ndarray):
+    """Gives the feature views to fill: the torso's and the legs' (24)."""
+    self._torso_features = torso_span
+    self._joint_features = joint_span
+
+  def after_compile(self, physics: mjcf.Physics) -> None:
+    self.torso.after_compile(physics)
+
+  def reset(
+    self, physics, random_state, leg_pose, position=None, yaw: float = 0.0
+  ) -> None:
+    """Draws terrain and places the robot still, legs at `leg_pose`.
+
+    Args:
+      physics: the physics, inside `reset_context`.
+      random_state: the episode's random state.
+      leg_pose: 12 joint angles, rad; also commanded to the servos.
+      position: torso position (world, m); ROBEL's frame origin if None.
+      yaw: torso heading about z, rad (0 faces +y).
+    """
+    self.arena.regenerate(physics, random_state)
+    physics.bind(self.robot.joints).qpos = leg_pose
+    physics.bind(self.robot.actuators).ctrl = leg_pose
+    if position is None:
+      position = dkitty.ROBEL_FRAME_ORIGIN
+    self.torso.place(position, yaw)
+    # Bring derived quantities up to date: the next (legacy) physics step
+    # continues from them.
+    physics.forward()
+
+  def update(self, sensed_qpos, sensed_qvel) -> tuple[float, float, bool]:
+    """Reads torso and legs into the features.
+
+    Returns:
+      The (upright, falling) reward terms and whether the robot has fallen.
+    """
+    self.torso.update(self._torso_features)
+    self._joint_features[:12] = sensed_qpos
+    self._joint_features[12:] = sensed_qvel
+    upright = self.torso.upright
+    return (*self.upright.terms(upright), self.upright.fallen(upright))

@@ -1,0 +1,177 @@
+"""D'Kitty Orient: turn in place to face a target (robel_facts 2.6)."""
+
+import math
+
+from dm_control.composer import variation
+from dm_control.composer.variation import distributions
+import numpy as np
+
+from robel_dm import constants, randomization, registry
+from robel_dm.entities import dkitty
+from robel_dm.tasks import base, dkitty_common
+
+_EPISODE_STEPS = 80  # 8 s at 10 Hz.
+_UPRIGHT = dkitty_common.Upright(threshold=0.9, reward=2.0, falling_reward=-500)
+
+# Reward weights and thresholds (rad, m, cosine).
+_ALIGNMENT_WEIGHT = 4.0
+_CENTER_DISTANCE_WEIGHT = 4.0
+_BONUS_SMALL, _BONUS_SMALL_ANGLE = 5.0, 0.26
+_BONUS_BIG, _BONUS_BIG_ANGLE = 10.0, 0.087
+_BONUS_UPRIGHT = 0.96
+
+# The target stands this far from the origin, m, at heading angle + pi/2.
+_TARGET_DISTANCE = 1.0
+
+# OrientRandom: initial heading and target heading, rad.
+_RANDOM_INITIAL_YAW = distributions.Uniform(-np.pi / 3, np.pi / 3)
+_RANDOM_TARGET_YAW = distributions.Uniform(2 * np.pi / 3, 4 * np.pi / 3)
+
+
+class OrientTask(base.RobelTask):
+  """Turn to face a target one metre away, staying upright."""
+
+  FEATURES = {
+    **dkitty_common.FEATURES,
+    'current_facing': 2,
+    'desired_facing': 2,
+    'angle_error': 1,
+  }
+  DEFAULT_OBSERVATION_KEYS = dkitty_common.DEFAULT_OBSERVATION_KEYS + (
+    'current_facing',
+    'desired_facing',
+  )
+  REWARD_TERMS = (
+    'upright',
+    'falling',
+    'alignment_error_cost',
+    'center_distance_cost',
+    'bonus_small',
+    'bonus_big',
+  )
+
+  def __init__(
+    self,
+    *,
+    initial_yaw=0.0,
+    target_yaw=np.pi,
+    terrain: bool = False,
+    dynamics: randomization.DynamicsRanges | None = None,
+    observation_noise: float = 0.0,
+    observation_keys: tuple[str, ...] | None = None,
+    action_bounds: str = 'raise',
+  ):
+    """Builds the floor, the robot, the target and the task.
+
+    Args:
+      initial_yaw: the robot's heading at reset (rad, or a Variation);
+        0 faces +y.
+      target_yaw: heading of the target from the origin (rad, or a
+        Variation), in the same convention.
+      terrain: turn on ROBEL's random heightfield instead of a plane.
+      dynamics: per-episode dynamics ranges, or None.
+      observation_noise: ROBEL's observation-noise fraction (leg joints).
+      observation_keys: the agent's observation; ROBEL's default if None.
+      action_bounds: 'raise' or 'clip' for actions outside [-1, 1].
+    """
+    self._kitty = dkitty_common.KittyParts(terrain=terrain, upright=_UPRIGHT)
+    self._target_body = self._kitty.arena.add_marker(
+      'target', size=(0.05, 0.1), rgba=(0.9, 0.2, 0.2, 1)
+    )
+    self._initial_yaw = initial_yaw
+    self._target_yaw = target_yaw
+    self._target = np.zeros(2)
+    super().__init__(
+      **self._kitty.robel_task_arguments(),
+      episode_steps=_EPISODE_STEPS,
+      dynamics=dynamics,
+      observation_noise=observation_noise,
+      observation_keys=observation_keys,
+      action_bounds=action_bounds,
+    )
+    self._kitty.bind_features(
+      self._feature_span('upright', 'root_angular_vel'),
+      self._feature_span('kitty_qpos', 'kitty_qvel'),
+    )
+    self._facing_features = self._feature_span('current_facing', 'angle_error')
+
+  @property
+  def target(self) -> np.ndarray:
+    """The target's position on the floor, m."""
+    return self._target.copy()
+
+  def after_compile(self, physics, random_state) -> None:
+    super().after_compile(physics, random_state)
+    self._kitty.after_compile(physics)
+    target = base.mocap_index(physics, self._target_body)
+    self._target_pos = physics.data.mocap_pos[target]  # A view.
+
+  def _initialize_state(self, physics, random_state) -> None:
+    yaw = float(
+      variation.evaluate(self._initial_yaw, random_state=random_state)
+    )
+    target_yaw = float(
+      variation.evaluate(self._target_yaw, random_state=random_state)
+    )
+    # Headings count from +y, so a heading h points along angle h + pi/2.
+    angle = target_yaw + np.pi / 2
+    self._target[:] = math.cos(angle), math.sin(angle)
+    self._target *= _TARGET_DISTANCE
+    self._target_pos[:2] = self._target
+    self._target_pos[2] = 0.1
+    self._kitty.reset(physics, random_state, dkitty.STANDING_POSE, yaw=yaw)
+
+  def _compute(self, physics) -> tuple[float, ...]:
+    upright_term, falling_term, self._failed = self._kitty.update(
+      self._sensed_qpos, self._sensed_qvel
+    )
+    torso = self._kitty.torso
+    facing = torso.facing
+    to_target = self._target - torso.position[:2]
+    distance = base.norm(to_target)
+    desired = to_target / distance if distance > 0 else to_target
+    cosine = min(max(dkitty_common.cosine(facing, desired), -1.0), 1.0)
+    angle_error = math.acos(cosine)
+    self._facing_features[:] = (*facing, *desired, angle_error)
+
+    upright = torso.upright
+    upright_bonus = upright > _BONUS_UPRIGHT
+    small = _BONUS_SMALL * ((angle_error < _BONUS_SMALL_ANGLE) + upright_bonus)
+    big = (
+      _BONUS_BIG if angle_error < _BONUS_BIG_ANGLE and upright_bonus else 0.0
+    )
+    self._score[...] = 1.0 - angle_error / np.pi
+    self._success[...] = big > 0
+    return (
+      upright_term,
+      falling_term,
+      -_ALIGNMENT_WEIGHT * angle_error,
+      -_CENTER_DISTANCE_WEIGHT * base.norm(torso.position[:2]),
+      float(small),
+      big,
+    )
+
+
+@registry.DKITTY.add(registry.FIXED)
+def orient_fixed(**kwargs) -> OrientTask:
+  """Turn around: from facing +y to a target directly behind."""
+  return OrientTask(initial_yaw=0.0, target_yaw=np.pi, **kwargs)
+
+
+@registry.DKITTY.add(registry.RANDOM)
+def orient_random(**kwargs) -> OrientTask:
+  """Random initial heading and a target roughly behind."""
+  return OrientTask(
+    initial_yaw=_RANDOM_INITIAL_YAW, target_yaw=_RANDOM_TARGET_YAW, **kwargs
+  )
+
+
+@registry.DKITTY.add(registry.RANDOM_DYNAMICS)
+def orient_random_dynamics(**kwargs) -> OrientTask:
+  """orient_random on random terrain with random dynamics and noise."""
+  return orient_random(
+    terrain=True,
+    dynamics=randomization.DKITTY_LOCOMOTION,
+    observation_noise=constants.OBSERVATION_NOISE_FRACTION,
+    **kwargs,
+  )

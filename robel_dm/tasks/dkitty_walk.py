@@ -1,0 +1,172 @@
+"""D'Kitty Walk: walk to a target while facing it (robel_facts 2.7)."""
+
+import math
+
+from dm_control.composer import variation
+from dm_control.composer.variation import distributions
+import numpy as np
+
+from robel_dm import constants, randomization, registry
+from robel_dm.entities import dkitty
+from robel_dm.tasks import base, dkitty_common
+
+_EPISODE_STEPS = 160  # 16 s at 10 Hz.
+_UPRIGHT = dkitty_common.Upright(threshold=0.9, reward=1.0, falling_reward=-500)
+
+# Reward weights and thresholds (m, cosine).
+_TARGET_DISTANCE_WEIGHT = 4.0
+_HEADING_WEIGHT, _HEADING_THRESHOLD = 2.0, 0.9
+_BONUS_SMALL, _BONUS_BIG, _BONUS_DISTANCE = 5.0, 10.0, 0.5
+
+# WalkRandom: target distance, m, and heading offset from straight ahead, rad.
+_RANDOM_DISTANCE = distributions.Uniform(1.0, 2.0)
+_RANDOM_ANGLE = distributions.Uniform(-np.pi / 3, np.pi / 3)
+
+
+class WalkTask(base.RobelTask):
+  """Walk to a target on the floor, facing it, staying upright."""
+
+  FEATURES = {
+    **dkitty_common.FEATURES,
+    'heading': 1,
+    'target_pos': 2,
+    'target_error': 2,
+  }
+  DEFAULT_OBSERVATION_KEYS = dkitty_common.DEFAULT_OBSERVATION_KEYS + (
+    'heading',
+    'target_error',
+  )
+  REWARD_TERMS = (
+    'upright',
+    'falling',
+    'target_dist_cost',
+    'heading',
+    'bonus_small',
+    'bonus_big',
+  )
+
+  def __init__(
+    self,
+    *,
+    target_distance=2.0,
+    target_angle=0.0,
+    terrain: bool = False,
+    dynamics: randomization.DynamicsRanges | None = None,
+    observation_noise: float = 0.0,
+    observation_keys: tuple[str, ...] | None = None,
+    action_bounds: str = 'raise',
+  ):
+    """Builds the floor, the robot, the target and the task.
+
+    Args:
+      target_distance: distance of the target from the start, m (or a
+        Variation).
+      target_angle: direction of the target from straight ahead (+y), rad
+        (or a Variation), counter-clockwise.
+      terrain: walk on ROBEL's random heightfield instead of a plane.
+      dynamics: per-episode dynamics ranges, or None.
+      observation_noise: ROBEL's observation-noise fraction (leg joints).
+      observation_keys: the agent's observation; ROBEL's default if None.
+      action_bounds: 'raise' or 'clip' for actions outside [-1, 1].
+    """
+    self._kitty = dkitty_common.KittyParts(terrain=terrain, upright=_UPRIGHT)
+    arena = self._kitty.arena
+    self._target_body = arena.add_marker(
+      'target', size=(0.5, 0.005), rgba=(0.2, 0.8, 0.3, 0.6)
+    )
+    # ROBEL's heading marker; the heading target is the target itself.
+    self._heading_body = arena.add_marker(
+      'heading', size=(0.05, 0.25), rgba=(0.9, 0.6, 0.1, 1)
+    )
+    self._target_distance = target_distance
+    self._target_angle = target_angle
+    self._target = np.zeros(2)
+    super().__init__(
+      **self._kitty.robel_task_arguments(),
+      episode_steps=_EPISODE_STEPS,
+      dynamics=dynamics,
+      observation_noise=observation_noise,
+      observation_keys=observation_keys,
+      action_bounds=action_bounds,
+    )
+    self._kitty.bind_features(
+      self._feature_span('upright', 'root_angular_vel'),
+      self._feature_span('kitty_qpos', 'kitty_qvel'),
+    )
+    self._target_features = self._feature_span('heading', 'target_error')
+
+  @property
+  def target(self) -> np.ndarray:
+    """The target's position on the floor, m."""
+    return self._target.copy()
+
+  def after_compile(self, physics, random_state) -> None:
+    super().after_compile(physics, random_state)
+    self._kitty.after_compile(physics)
+    mocap_pos = physics.data.mocap_pos
+    self._target_pos = mocap_pos[base.mocap_index(physics, self._target_body)]
+    self._heading_pos = mocap_pos[base.mocap_index(physics, self._heading_body)]
+
+  def _initialize_state(self, physics, random_state) -> None:
+    distance = float(
+      variation.evaluate(self._target_distance, random_state=random_state)
+    )
+    angle = np.pi / 2 + float(
+      variation.evaluate(self._target_angle, random_state=random_state)
+    )
+    self._target[:] = math.cos(angle), math.sin(angle)
+    self._target *= distance
+    self._target_pos[:] = (*self._target, 0.005)
+    self._heading_pos[:] = (*self._target, 0.25)
+    self._kitty.reset(physics, random_state, dkitty.STANDING_POSE)
+
+  def _compute(self, physics) -> tuple[float, ...]:
+    upright_term, falling_term, self._failed = self._kitty.update(
+      self._sensed_qpos, self._sensed_qvel
+    )
+    torso = self._kitty.torso
+    target_error = self._target - torso.position[:2]
+    heading = dkitty_common.cosine(torso.facing, target_error)
+    self._target_features[:] = (heading, *self._target, *target_error)
+
+    distance = base.norm(target_error)
+    near, facing = distance < _BONUS_DISTANCE, heading > _HEADING_THRESHOLD
+    small = _BONUS_SMALL * (near + facing)
+    big = _BONUS_BIG if near and facing else 0.0
+    self._score[...] = -distance
+    self._success[...] = big > 0
+    return (
+      upright_term,
+      falling_term,
+      -_TARGET_DISTANCE_WEIGHT * distance,
+      _HEADING_WEIGHT
+      * (heading - _HEADING_THRESHOLD)
+      / (1 - _HEADING_THRESHOLD),
+      float(small),
+      big,
+    )
+
+
+@registry.DKITTY.add(registry.FIXED)
+def walk_fixed(**kwargs) -> WalkTask:
+  """Walk 2 m straight ahead."""
+  return WalkTask(target_distance=2.0, target_angle=0.0, **kwargs)
+
+
+@registry.DKITTY.add(registry.RANDOM)
+def walk_random(**kwargs) -> WalkTask:
+  """Walk 1-2 m to a target within 60 degrees of straight ahead."""
+  return WalkTask(
+    target_distance=_RANDOM_DISTANCE, target_angle=_RANDOM_ANGLE, **kwargs
+  )
+
+
+@registry.DKITTY.add(registry.RANDOM_DYNAMICS)
+def walk_random_dynamics(**kwargs) -> WalkTask:
+  """walk_random on random terrain with random dynamics and noise."""
+  return walk_random(
+    terrain=True,
+    dynamics=randomization.DKITTY_LOCOMOTION,
+    observation_noise=constants.OBSERVATION_NOISE_FRACTION,
+    **kwargs,
+  )
