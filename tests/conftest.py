@@ -4,7 +4,9 @@ Selects headless EGL rendering before anything imports dm_control, and
 parameterizes tests over the task registry: a test that takes `task_id`
 runs once per task of `suite.ALL_TASKS`; `fixed_task_id`, `random_task_id`,
 `dynamics_task_id` and `nominal_task_id` select the Fixed, Random,
-RandomDynamics and not-RandomDynamics variants.
+RandomDynamics and not-RandomDynamics variants of every domain. With a
+domain prefix (`dclaw_task_id`, `dkitty_dynamics_task_id`, ...) they select
+that domain's tasks only.
 """
 
 import os
@@ -15,7 +17,7 @@ import pytest  # noqa: E402
 
 from robel_dm import suite  # noqa: E402
 
-_TASK_PARAMETERS = {
+_VARIANTS = {
   'task_id': suite.ALL_TASKS,
   'fixed_task_id': suite.FIXED,
   'random_task_id': suite.RANDOM,
@@ -24,11 +26,18 @@ _TASK_PARAMETERS = {
     task for task in suite.ALL_TASKS if task not in suite.RANDOM_DYNAMICS
   ),
 }
+_TASK_PARAMETERS = dict(_VARIANTS)
+for _domain in suite.TASKS_BY_DOMAIN:
+  for _name, _tasks in _VARIANTS.items():
+    _TASK_PARAMETERS[f'{_domain}_{_name}'] = tuple(
+      task for task in _tasks if task[0] == _domain
+    )
 
 
 def pytest_generate_tests(metafunc):
   for name, tasks in _TASK_PARAMETERS.items():
     if name in metafunc.fixturenames:
+      assert tasks, f'no tasks for {name}'
       metafunc.parametrize(
         name, tasks, ids=[f'{domain}-{task}' for domain, task in tasks]
       )

@@ -20,26 +20,47 @@ def test_reference_controller_solves_pose(task):
   assert results['safety']['velocity'] == 0
 
 
-def test_metrics_match_a_manual_rollout():
+def test_reference_controller_makes_the_dkitty_stand():
+  results = evaluate.evaluate(
+    'dkitty', 'stand_fixed', episodes=20, policy='reference'
+  )
+  assert results['episodes'] == len(results['records']) == 20
+  assert results['success_rate'] >= 0.9
+  # It never falls: every episode runs its 80 steps.
+  assert [r['steps'] for r in results['records']] == [80] * 20
+  # It ends standing straight: the score is about 1 at the last step.
+  assert results['mean_final_score'] > 0.9
+  assert results['safety']['velocity'] == 0
+
+
+@pytest.mark.parametrize(
+  'domain, task', [('dclaw', 'turn_random'), ('dkitty', 'walk_random')]
+)
+def test_metrics_match_a_manual_rollout(domain, task):
   seed = 3
   results = evaluate.evaluate(
-    'dclaw', 'turn_random', episodes=2, policy='zero', seed=seed
+    domain, task, episodes=2, policy='zero', seed=seed
   )
-  env = suite.load('dclaw', 'turn_random', seed=seed)
-  returns, successes, safety = [], [], np.zeros(3)
+  env = suite.load(domain, task, seed=seed)
+  zeros = np.zeros(env.action_spec().shape)
+  returns, successes, safety, steps = [], [], np.zeros(3), []
   for _ in range(2):
     timestep = env.reset()
-    total = 0.0
+    total, count = 0.0, 0
     while not timestep.last():
-      timestep = env.step(np.zeros(9))
+      timestep = env.step(zeros)
       total += timestep.reward
       safety += timestep.observation['safety']
+      count += 1
     returns.append(total)
     successes.append(bool(timestep.observation['success']))
+    steps.append(count)
   assert results['mean_return'] == pytest.approx(np.mean(returns), abs=1e-9)
   assert results['success_rate'] == np.mean(successes)
   assert list(results['safety'].values()) == pytest.approx(safety / 2)
-  assert [r['steps'] for r in results['records']] == [40, 40]
+  assert [r['steps'] for r in results['records']] == steps
+  if domain == 'dclaw':
+    assert steps == [40, 40]
   assert results['steps_per_second'] > 0
 
 
@@ -58,6 +79,10 @@ def test_unknown_or_unavailable_policies_raise():
   env = suite.load('dclaw', 'turn_fixed', seed=0)
   with pytest.raises(ValueError, match='no scripted reference'):
     policies.make_policy('reference', env, seed=0)
+  for task in ('orient_fixed', 'walk_fixed'):
+    kitty_env = suite.load('dkitty', task, seed=0)
+    with pytest.raises(ValueError, match='no scripted reference'):
+      policies.make_policy('reference', kitty_env, seed=0)
   with pytest.raises(ValueError, match="unknown policy 'greedy'"):
     policies.make_policy('greedy', env, seed=0)
 
@@ -111,10 +136,34 @@ def test_cli_prints_a_table_and_writes_json(tmp_path):
   assert results['episodes'] == len(results['records']) == 2
 
 
+def test_cli_evaluates_a_dkitty_task(tmp_path):
+  output = tmp_path / 'results.json'
+  result = _run_cli(
+    '--domain=dkitty', '--task=stand_fixed', '--policy=reference',
+    '--episodes=2', f'--output={output}', cwd=tmp_path,
+  )  # fmt: skip
+  assert result.returncode == 0, result.stderr
+  assert 'dkitty/stand_fixed' in result.stdout
+  assert 'success rate' in result.stdout
+  results = json.loads(output.read_text())
+  assert (results['domain'], results['task']) == ('dkitty', 'stand_fixed')
+  assert results['episodes'] == len(results['records']) == 2
+  assert [r['steps'] for r in results['records']] == [80, 80]
+  assert results['success_rate'] == 1.0
+
+
 @pytest.mark.parametrize(
   'flags, message',
   [
     (['--task=turn_fixd'], "unknown dclaw task 'turn_fixd'"),
+    (
+      ['--domain=dkitty', '--task=turn_fixed'],
+      "unknown dkitty task 'turn_fixed'",
+    ),
+    (
+      ['--domain=dkitty', '--task=walk_fixed', '--policy=reference'],
+      'no scripted reference',
+    ),
     (['--domain=dcat'], "unknown domain 'dcat'"),
     (['--task=turn_fixed', '--policy=reference'], 'no scripted reference'),
     (['--task=turn_fixed', '--task_kwargs=valve=valve5'], 'unknown valve'),

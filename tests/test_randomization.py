@@ -10,6 +10,7 @@ from dm_control import mjcf
 import mujoco
 import numpy as np
 import pytest
+import robel_spec
 
 from robel_dm import randomization, suite
 from robel_dm.entities import dclaw
@@ -28,10 +29,22 @@ _MOUNT_OFFSET = 0.01
 _COLOR = (0.2, 0.9)
 _PLASTIC_RATIO = 0.2  # Plastic (fingertips, valve) to metal slide friction.
 
+# The D'Kitty's (robel_facts 2.4): one damping and one friction-loss draw for
+# all leg DOFs, kp per task, total mass.
+_KITTY_DAMPING = (0.1, 0.2)
+_KITTY_KP_STAND = (2.0, 4.0)
+_KITTY_KP_WALK = (2.8, 3.2)  # Orient and Walk.
+_KITTY_MASS = (1.6, 2.0)
+_TERRAIN = (0.0, 0.05)
+
 # Observation noise half-widths: 0.05 * range width / 2 (robel_facts 6).
 _CLAW_QPOS_NOISE = 0.05 * np.tile([0.96, 2 * np.pi / 3, np.pi], 3) / 2
 _CLAW_QVEL_NOISE = 0.05 * (4 * np.pi / 3) / 2
 _VALVE_NOISE = 0.05 * np.pi
+# The D'Kitty's leg joints: hips 0.779, upper legs pi/2, knees 2.0 wide;
+# velocities +-pi rad/s.
+_KITTY_QPOS_NOISE = 0.05 * np.tile([0.779, np.pi / 2, 2.0], 4) / 2
+_KITTY_QVEL_NOISE = 0.05 * (2 * np.pi) / 2
 
 _MODEL_FIELDS = (
   'dof_damping',
@@ -93,6 +106,27 @@ def test_range_constants_are_robels():
   assert (valve.color.low, valve.color.high) == _COLOR
 
 
+def test_dkitty_range_constants_are_robels():
+  stand, locomotion = (
+    randomization.DKITTY_STAND,
+    randomization.DKITTY_LOCOMOTION,
+  )
+  for ranges, kp in ((stand, _KITTY_KP_STAND), (locomotion, _KITTY_KP_WALK)):
+    assert (ranges.damping.low, ranges.damping.high) == _KITTY_DAMPING
+    assert (ranges.friction_loss.low, ranges.friction_loss.high) == (
+      _FRICTION_LOSS
+    )
+    assert ranges.damping_shared and ranges.friction_loss_shared
+    assert (ranges.actuator_kp.low, ranges.actuator_kp.high) == kp
+    friction = ranges.geom_friction
+    np.testing.assert_array_equal(friction.low, [_SLIDE[0], _SPIN[0], _ROLL[0]])
+    np.testing.assert_array_equal(
+      friction.high, [_SLIDE[1], _SPIN[1], _ROLL[1]]
+    )
+    assert (ranges.total_mass.low, ranges.total_mass.high) == _KITTY_MASS
+    assert ranges.mount_offset is None and ranges.color is None
+
+
 def test_range_rejects_empty_ranges_and_checks_membership():
   with pytest.raises(ValueError, match='empty range'):
     randomization.Range(1.0, 0.5)
@@ -113,8 +147,10 @@ def test_noise_halfwidths_are_a_fraction_of_half_the_width():
 # --- RandomDynamics tasks ----------------------------------------------------
 
 
-def test_dynamics_stay_in_robels_ranges_and_do_not_compound(dynamics_task_id):
-  task_id = dynamics_task_id
+def test_dynamics_stay_in_robels_ranges_and_do_not_compound(
+  dclaw_dynamics_task_id,
+):
+  task_id = dclaw_dynamics_task_id
   nominal_env = suite.load(*_fixed_counterpart(task_id), seed=0)
   nominal_env.reset()
   nominal = _snapshot(nominal_env.physics.model)
@@ -212,7 +248,7 @@ def test_nominal_variants_leave_the_model_alone(nominal_task_id):
   assert env.task.observation_noise == 0
   for _ in range(3):
     env.reset()
-    env.step(np.full(9, 0.5))
+    env.step(np.full(env.action_spec().shape, 0.5))
     current = _snapshot(env.physics.model)
     for name in _MODEL_FIELDS:
       np.testing.assert_array_equal(current[name], nominal[name], name)
@@ -325,9 +361,9 @@ def _valve_reward(goal, angle, qpos, qvel):
 
 
 def test_observation_noise_is_bounded_and_rewards_use_the_true_state(
-  dynamics_task_id,
+  dclaw_dynamics_task_id,
 ):
-  task_id = dynamics_task_id
+  task_id = dclaw_dynamics_task_id
   pose = _is_pose(task_id)
   velocity_keys = ('qvel',) if pose else ('claw_qvel', 'object_qvel')
   env = suite.load(*task_id, seed=0)
@@ -374,6 +410,182 @@ def test_observation_noise_is_bounded_and_rewards_use_the_true_state(
   for name, values in ratios.items():
     if pose and name == 'valve':
       continue
+    values = np.array(values)
+    # Within ROBEL's half-widths, and actually spread over them.
+    assert values.max() <= 1 + 1e-9, name
+    assert np.all(values.max(axis=0) > 0.5), name
+
+
+# --- The D'Kitty's RandomDynamics ---------------------------------------------
+
+
+def _spread(values, bounds):
+  """Fraction of the range `bounds` the values cover."""
+  return (np.max(values) - np.min(values)) / (bounds[1] - bounds[0])
+
+
+def test_dkitty_dynamics_stay_in_robels_ranges_and_do_not_compound(
+  dkitty_dynamics_task_id,
+):
+  task_id = dkitty_dynamics_task_id
+  stand = robel_spec.family(task_id) == 'stand'
+  kp_bounds = _KITTY_KP_STAND if stand else _KITTY_KP_WALK
+  env = suite.load(*task_id, seed=0)
+  assert env.task.dynamics == (
+    randomization.DKITTY_STAND if stand else randomization.DKITTY_LOCOMOTION
+  )
+  model, data = env.physics.model, env.physics.data
+  # The model is compiled once, at construction: before the first reset it
+  # is nominal, and agrees with the Fixed variant's (which has no terrain).
+  nominal = _snapshot(model)
+  fixed_env = suite.load(*_fixed_counterpart(task_id), seed=0)
+  for name in ('dof_damping', 'dof_frictionloss', 'actuator_gainprm',
+               'actuator_biasprm', 'body_mass', 'body_inertia'):  # fmt: skip
+    np.testing.assert_array_equal(
+      nominal[name], getattr(fixed_env.physics.model, name), name
+    )
+  assert model.ngeom == fixed_env.physics.model.ngeom + 1  # The terrain.
+  nominal_total = nominal['body_mass'].sum()
+  legs = env.physics.bind(env.task.robot.joints).dofadr
+  others = np.setdiff1d(np.arange(model.nv), legs)
+  assert len(legs) == 12 and len(others) == 6  # The free joint.
+  # ROBEL's friction draw is for its default friction, which every geom of
+  # the D'Kitty and the floor has.
+  np.testing.assert_array_equal(
+    nominal['geom_friction'], np.tile(_METAL_FRICTION, (model.ngeom, 1))
+  )
+
+  previous = None
+  draws = {'kp': [], 'mass': [], 'damping': []}
+  for _ in range(_RESETS):
+    env.reset()
+    current = _snapshot(model)
+    damping = current['dof_damping']
+    assert np.all(damping[legs] == damping[legs[0]])  # One shared draw.
+    assert _within(damping[legs[0]], _KITTY_DAMPING)
+    np.testing.assert_array_equal(
+      damping[others], nominal['dof_damping'][others]
+    )
+    friction_loss = current['dof_frictionloss']
+    assert np.all(friction_loss[legs] == friction_loss[legs[0]])
+    assert _within(friction_loss[legs[0]], _FRICTION_LOSS)
+    np.testing.assert_array_equal(
+      friction_loss[others], nominal['dof_frictionloss'][others]
+    )
+    kp = current['actuator_gainprm'][:, 0]
+    assert len(kp) == 12 and np.all(kp == kp[0]) and _within(kp[0], kp_bounds)
+    np.testing.assert_array_equal(current['actuator_biasprm'][:, 1], -kp)
+    np.testing.assert_array_equal(
+      current['actuator_gainprm'][:, 1:], nominal['actuator_gainprm'][:, 1:]
+    )
+    np.testing.assert_array_equal(
+      current['actuator_biasprm'][:, [0, 2]],
+      nominal['actuator_biasprm'][:, [0, 2]],
+    )
+    # One geom friction for all geoms, relative to the nominal friction.
+    friction = current['geom_friction']
+    np.testing.assert_array_equal(
+      friction, friction[:1].repeat(len(friction), 0)
+    )
+    assert _within(friction[:, 0], _SLIDE)
+    assert _within(friction[:, 1], _SPIN)
+    assert _within(friction[:, 2], _ROLL)
+    # Total mass in ROBEL's range; every body scaled from nominal.
+    total = current['body_mass'].sum()
+    assert _within(total, _KITTY_MASS)
+    scale = total / nominal_total
+    np.testing.assert_allclose(
+      current['body_mass'], scale * nominal['body_mass']
+    )
+    np.testing.assert_allclose(
+      current['body_inertia'], scale * nominal['body_inertia']
+    )
+    # Derived constants are consistent with the new masses.
+    assert model.body_subtreemass[0] == pytest.approx(total, rel=1e-12)
+    derived = (
+      model.body_subtreemass.copy(),
+      model.dof_invweight0.copy(),
+      model.body_invweight0.copy(),
+    )
+    mujoco.mj_setConst(model.ptr, data.ptr)
+    np.testing.assert_allclose(model.body_subtreemass, derived[0], rtol=1e-12)
+    np.testing.assert_allclose(model.dof_invweight0, derived[1], rtol=1e-12)
+    np.testing.assert_allclose(model.body_invweight0, derived[2], rtol=1e-12)
+    # Nothing else moves or changes colour.
+    np.testing.assert_array_equal(current['body_pos'], nominal['body_pos'])
+    np.testing.assert_array_equal(current['geom_rgba'], nominal['geom_rgba'])
+    if previous is not None:  # Fresh draws at every reset.
+      assert damping[legs[0]] != previous['dof_damping'][legs[0]]
+      assert friction_loss[legs[0]] != previous['dof_frictionloss'][legs[0]]
+      assert kp[0] != previous['actuator_gainprm'][0, 0]
+      assert np.all(friction[0] != previous['geom_friction'][0])
+      assert total != previous['body_mass'].sum()
+    previous = current
+    draws['kp'].append(kp[0])
+    draws['mass'].append(total)
+    draws['damping'].append(damping[legs[0]])
+  # The draws spread over the ranges (Stand's kp range is the wider one).
+  assert _spread(draws['kp'], kp_bounds) > 0.6
+  assert _spread(draws['mass'], _KITTY_MASS) > 0.6
+  assert _spread(draws['damping'], _KITTY_DAMPING) > 0.6
+
+
+def test_dkitty_observation_noise_is_on_the_legs_only(dkitty_dynamics_task_id):
+  task_id = dkitty_dynamics_task_id
+  family = robel_spec.family(task_id)
+  env = suite.load(*task_id, seed=0)
+  assert env.task.observation_noise == 0.05
+  timestep = env.reset()
+  physics = env.physics
+  legs = physics.bind(env.task.robot.joints)
+  torso = physics.bind(env.task.robot.torso)
+  root = physics.bind(mjcf.get_frame_freejoint(env.task.robot.mjcf_model))
+  policy = robel_spec.steady_policy(env)
+  ratios = {'qpos': [], 'qvel': []}
+  noisy_rewards_differ = False
+  while True:
+    obs = timestep.observation
+    ratios['qpos'].append(
+      np.abs(obs['kitty_qpos'] - legs.qpos) / _KITTY_QPOS_NOISE
+    )
+    ratios['qvel'].append(
+      np.abs(obs['kitty_qvel'] - legs.qvel) / _KITTY_QVEL_NOISE
+    )
+    # The torso's features are exact.
+    np.testing.assert_array_equal(obs['upright'], [torso.xmat[8]])
+    np.testing.assert_allclose(
+      obs['root_pos'], torso.xpos - [0.0, 0.0, 0.3], rtol=0, atol=1e-12
+    )
+    np.testing.assert_array_equal(obs['root_vel'], root.qvel[:3])
+    xy = torso.xpos[:2]
+    if family == 'stand':
+      # pose_error is from the noisy joints; the reward from the true ones.
+      np.testing.assert_allclose(obs['pose_error'], -obs['kitty_qpos'])
+      cost = -4 * np.mean(np.abs(legs.qpos))
+      noisy_cost = -4 * np.mean(np.abs(obs['kitty_qpos']))
+      terms = env.task.reward_terms
+      assert terms['pose_error_cost'] == pytest.approx(cost, abs=1e-12)
+      noisy_rewards_differ |= abs(noisy_cost - cost) > 1e-6
+      points = (1 - min(np.mean(np.abs(legs.qpos)) / (np.pi / 3), 1)) * (
+        torso.xmat[8]
+      )
+      assert float(obs['score']) == pytest.approx(points, abs=1e-12)
+    elif family == 'orient':
+      np.testing.assert_array_equal(obs['current_facing'], torso.xmat[[1, 4]])
+      to_target = env.task.target - xy
+      np.testing.assert_allclose(
+        obs['desired_facing'], to_target / np.linalg.norm(to_target)
+      )
+    else:
+      np.testing.assert_allclose(
+        obs['target_error'], env.task.target - xy, rtol=0, atol=1e-12
+      )
+    if timestep.last():
+      break
+    timestep = env.step(policy(timestep))
+  if family == 'stand':
+    assert noisy_rewards_differ
+  for name, values in ratios.items():
     values = np.array(values)
     # Within ROBEL's half-widths, and actually spread over them.
     assert values.max() <= 1 + 1e-9, name

@@ -5,13 +5,16 @@ import dm_env
 from dm_env import test_utils
 import numpy as np
 import pytest
+import robel_spec
 
 from robel_dm import constants, suite
+from robel_dm.entities import dkitty
 
 # ROBEL's episode length (control steps) and control timestep (s) per task
 # family (robel_facts section 1); the family is the task name's first word.
-_ROBEL_TIMING = {'pose': (80, 0.05), 'turn': (40, 0.1), 'screw': (80, 0.1)}
-_ROBEL_PHYSICS_TIMESTEP = 0.0025
+_ROBEL_TIMING = robel_spec.TIMING
+_ROBEL_PHYSICS_TIMESTEP = robel_spec.PHYSICS_TIMESTEP
+_ONE_TASK_PER_DOMAIN = (('dclaw', 'turn_fixed'), ('dkitty', 'walk_fixed'))
 
 
 def _family(task_id):
@@ -70,37 +73,80 @@ del _ConformanceTest  # Abstract: keep pytest from collecting it.
 # --- Registry ----------------------------------------------------------------
 
 
-def test_registry_lists_the_dclaw_tasks():
-  assert suite.ALL_TASKS
-  assert set(suite.TASKS_BY_DOMAIN) == {'dclaw'}
-  assert suite.TASKS_BY_DOMAIN['dclaw'] == tuple(
-    task for _, task in suite.ALL_TASKS
+def test_registry_lists_the_tasks_of_both_domains():
+  assert len(suite.ALL_TASKS) == 18
+  assert set(suite.TASKS_BY_DOMAIN) == {'dclaw', 'dkitty'}
+  assert (
+    tuple(
+      (domain, task)
+      for domain, tasks in suite.TASKS_BY_DOMAIN.items()
+      for task in tasks
+    )
+    == suite.ALL_TASKS
   )
+  for domain, families in robel_spec.FAMILIES.items():
+    tasks = suite.TASKS_BY_DOMAIN[domain]
+    assert len(tasks) == 9
+    assert {_family((domain, task)) for task in tasks} == set(families)
   assert {_family(task_id) for task_id in suite.ALL_TASKS} == set(_ROBEL_TIMING)
 
 
 def test_variant_tags_partition_the_registry():
   tagged = suite.FIXED + suite.RANDOM + suite.RANDOM_DYNAMICS
   assert sorted(tagged) == sorted(suite.ALL_TASKS)
-  # Each family has exactly one task of each variant.
-  for variant in (suite.FIXED, suite.RANDOM, suite.RANDOM_DYNAMICS):
+  # Each family has exactly one task of each variant, named after it.
+  suffixes = {'_fixed': suite.FIXED, '_random': suite.RANDOM,
+              '_random_dynamics': suite.RANDOM_DYNAMICS}  # fmt: skip
+  for suffix, variant in suffixes.items():
     families = [_family(task_id) for task_id in variant]
     assert sorted(families) == sorted(_ROBEL_TIMING)
+    for domain, task in variant:
+      assert task == _family((domain, task)) + suffix
+      assert task in suite.TASKS_BY_DOMAIN[domain]
 
 
 # --- Episode timing ----------------------------------------------------------
 
 
-def _run_episode(env, rng):
-  """Steps `env` (just reset) to the end of the episode; returns #steps."""
+def _run_episode(env, policy, timestep):
+  """Steps `env` from `timestep`, its episode's FIRST, to the episode's end.
+
+  Returns:
+    The number of steps and the LAST timestep.
+  """
+  assert timestep.first()
   steps = 0
   while True:
-    timestep = env.step(rng.uniform(-1.0, 1.0, 9))
+    timestep = env.step(policy(timestep))
     steps += 1
     if timestep.last():
-      return steps
+      return steps, timestep
     assert timestep.mid()
     assert steps < 1000, 'the episode never ends'
+
+
+def _run_to_the_time_limit(env, policy, timestep, attempts=10):
+  """Runs episodes from `timestep` (a FIRST) until one reaches the time limit.
+
+  Only a fall of the D'Kitty may end an episode before its time limit: LAST
+  with discount 0. After such an episode, the next step (with a NaN action,
+  which a reset ignores) must start a new one.
+
+  Returns:
+    The number of steps of the episode that reached the time limit.
+  """
+  episode_steps = env.task.episode_steps
+  for _ in range(attempts):
+    steps, last = _run_episode(env, policy, timestep)
+    if last.discount == 1.0:
+      return steps
+    assert last.discount == 0.0
+    assert steps < episode_steps
+    assert isinstance(env.task.robot, dkitty.DKitty), "only the D'Kitty falls"
+    timestep = env.step(np.full(env.action_spec().shape, np.nan))
+    assert timestep.first()
+    assert env.physics.data.time == 0.0
+  pytest.fail(f'{attempts} episodes in a row ended in a fall')
 
 
 def test_episode_length_and_timesteps_are_robels(task_id):
@@ -113,49 +159,61 @@ def test_episode_length_and_timesteps_are_robels(task_id):
     control_timestep / _ROBEL_PHYSICS_TIMESTEP
   )
   assert env.task.episode_steps == episode_steps
-  rng = np.random.default_rng(0)
+  assert env.task.time_limit == pytest.approx(episode_steps * control_timestep)
+  policy = robel_spec.steady_policy(env)
 
   first = env.reset()
   assert first.first()
-  assert _run_episode(env, rng) == episode_steps
+  assert env.physics.data.time == 0.0
+  assert _run_to_the_time_limit(env, policy, first) == episode_steps
   assert env.physics.data.time == pytest.approx(
     episode_steps * control_timestep
   )
   # After LAST the next step resets (and ignores its action) ...
-  auto = env.step(np.full(9, np.nan))
+  auto = env.step(np.full(env.action_spec().shape, np.nan))
   assert auto.first()
   assert auto.reward is None and auto.discount is None
   assert env.physics.data.time == 0.0
   # ... and the next episode has the same length.
-  assert _run_episode(env, rng) == episode_steps
+  assert _run_to_the_time_limit(env, policy, auto) == episode_steps
 
 
-def test_time_limit_argument_overrides_the_episode_length():
+@pytest.mark.parametrize(
+  'task', _ONE_TASK_PER_DOMAIN, ids=robel_spec.ids(_ONE_TASK_PER_DOMAIN)
+)
+def test_time_limit_argument_overrides_the_episode_length(task):
   # composer ends the episode once physics time >= time_limit; 0.95 s is
   # reached at the 10th step of 0.1 s (away from float-rounding ties).
-  env = suite.load('dclaw', 'turn_fixed', seed=0, time_limit=0.95)
-  env.reset()
-  assert _run_episode(env, np.random.default_rng(0)) == 10
+  env = suite.load(*task, seed=0, time_limit=0.95)
+  first = env.reset()
+  policy = robel_spec.steady_policy(env)
+  assert _run_to_the_time_limit(env, policy, first) == 10
 
 
 def test_time_limit_of_whole_control_steps_gives_that_many_steps(task_id):
   # ROBEL's own episode length in seconds must give ROBEL's step count,
   # even though the accumulated physics time carries rounding error.
   episode_steps, control_timestep = _ROBEL_TIMING[_family(task_id)]
-  seconds = episode_steps * control_timestep  # 4 s or 8 s.
+  seconds = episode_steps * control_timestep  # 4 s, 8 s or 16 s.
   env = suite.load(*task_id, seed=0, time_limit=seconds)
-  env.reset()
-  assert _run_episode(env, np.random.default_rng(0)) == episode_steps
+  first = env.reset()
+  policy = robel_spec.steady_policy(env, seed=1)
+  assert _run_to_the_time_limit(env, policy, first) == episode_steps
 
 
-def test_discount_is_one_during_and_at_the_end_of_episodes():
-  env = suite.load('dclaw', 'turn_fixed', seed=0)
-  env.reset()
+def test_discount_is_one_during_and_at_the_end_of_episodes(fixed_task_id):
+  # The fixed tasks' steady policy never makes the D'Kitty fall.
+  env = suite.load(*fixed_task_id, seed=0)
+  timestep = env.reset()
+  policy = robel_spec.steady_policy(env)
+  steps = 0
   while True:
-    timestep = env.step(np.zeros(9))
+    timestep = env.step(policy(timestep))
+    steps += 1
     assert timestep.discount == 1.0  # Time-limit ends are not terminal.
     if timestep.last():
       break
+  assert steps == env.task.episode_steps
 
 
 # --- Bad arguments -----------------------------------------------------------
@@ -166,20 +224,38 @@ def test_unknown_domain_raises():
     suite.load('dkitty_bogus', 'turn_fixed')
 
 
-def test_unknown_task_raises_with_its_name_and_a_hint():
-  with pytest.raises(ValueError, match="'turn_fxied'") as info:
-    suite.load('dclaw', 'turn_fxied')
-  assert 'turn_fixed' in str(info.value)
+@pytest.mark.parametrize(
+  'domain, typo, task',
+  [('dclaw', 'turn_fxied', 'turn_fixed'), ('dkitty', 'walk_fxied',
+                                            'walk_fixed')],
+)  # fmt: skip
+def test_unknown_task_raises_with_its_name_and_a_hint(domain, typo, task):
+  with pytest.raises(ValueError, match=f"'{typo}'") as info:
+    suite.load(domain, typo)
+  assert task in str(info.value)
 
 
-def test_unknown_task_keyword_raises_value_error():
+def test_a_task_of_the_other_domain_is_unknown():
+  with pytest.raises(ValueError, match="unknown dkitty task 'turn_fixed'"):
+    suite.load('dkitty', 'turn_fixed')
+  with pytest.raises(ValueError, match="unknown dclaw task 'walk_fixed'"):
+    suite.load('dclaw', 'walk_fixed')
+
+
+@pytest.mark.parametrize(
+  'task', _ONE_TASK_PER_DOMAIN, ids=robel_spec.ids(_ONE_TASK_PER_DOMAIN)
+)
+def test_unknown_task_keyword_raises_value_error(task):
   with pytest.raises(ValueError, match='bogus_keyword'):
-    suite.load('dclaw', 'turn_fixed', task_kwargs={'bogus_keyword': 1})
+    suite.load(*task, task_kwargs={'bogus_keyword': 1})
 
 
 def test_unknown_valve_raises_value_error():
   with pytest.raises(ValueError, match="'valve5'"):
     suite.load('dclaw', 'turn_fixed', task_kwargs={'valve': 'valve5'})
+  # The D'Kitty's tasks have no valve.
+  with pytest.raises(ValueError, match='valve'):
+    suite.load('dkitty', 'walk_fixed', task_kwargs={'valve': 'valve3'})
 
 
 def test_unknown_observation_key_raises_value_error(task_id):
@@ -189,6 +265,9 @@ def test_unknown_observation_key_raises_value_error(task_id):
     )
 
 
-def test_unknown_action_bounds_mode_raises_value_error():
+@pytest.mark.parametrize(
+  'task', _ONE_TASK_PER_DOMAIN, ids=robel_spec.ids(_ONE_TASK_PER_DOMAIN)
+)
+def test_unknown_action_bounds_mode_raises_value_error(task):
   with pytest.raises(ValueError, match='action_bounds'):
-    suite.load('dclaw', 'pose_fixed', task_kwargs={'action_bounds': 'wrap'})
+    suite.load(*task, task_kwargs={'action_bounds': 'wrap'})

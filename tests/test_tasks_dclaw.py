@@ -1,8 +1,9 @@
 """Tests of the D'Claw tasks against ROBEL's definitions (robel_facts 2.0-2.3).
 
 Expected values are computed here, independently of robel_dm, from the
-formulas and constants of robel_facts: action ranges, reward terms, scores,
-success criteria and safety counters.
+formulas and constants of robel_facts: reward terms, scores, success
+criteria, initial states and goals, and the valves. What every task shares
+(observation layout, action map, safety counters) is in test_tasks.py.
 """
 
 import math
@@ -17,27 +18,7 @@ from robel_dm import suite
 # Action ranges per joint (top, middle, bottom) x 3 fingers, rad.
 _HALF_RANGE = np.tile([0.48, np.pi / 3, np.pi / 2], 3)
 _LOW, _HIGH = -_HALF_RANGE, _HALF_RANGE
-_MAX_JOINT_SPEED = 2 * np.pi / 3  # rad/s, for the per-step clamp.
 _RESET_POSE = np.tile([0.0, -np.pi / 3, np.pi / 3], 3)
-_SAFETY_MARGIN = np.deg2rad(5.0)
-_SAFETY_SPEED = 1.0
-
-_POSE_KEYS = ('qpos', 'last_action', 'qpos_error')
-_VALVE_KEYS = ('claw_qpos', 'object_x', 'object_y', 'last_action',
-               'target_error')  # fmt: skip
-# ROBEL's flattened observation layout: key -> slice of the flat vector.
-_POSE_LAYOUT = {
-  'qpos': slice(0, 9),
-  'last_action': slice(9, 18),
-  'qpos_error': slice(18, 27),
-}
-_VALVE_LAYOUT = {
-  'claw_qpos': slice(0, 9),
-  'object_x': slice(9, 10),
-  'object_y': slice(10, 11),
-  'last_action': slice(11, 20),
-  'target_error': slice(20, 21),
-}
 _POSE_TERMS = ('pose_error_cost', 'joint_vel_cost')
 _VALVE_TERMS = ('target_dist_cost', 'pose_diff_cost', 'joint_vel_cost',
                 'bonus_small', 'bonus_big')  # fmt: skip
@@ -51,9 +32,12 @@ def _is_pose(task_id):
   return _family(task_id) == 'pose'
 
 
-_VALVE_TASKS = tuple(t for t in suite.ALL_TASKS if not _is_pose(t))
+_DCLAW_TASKS = suite.TASKS_BY_DOMAIN['dclaw']
+_VALVE_TASKS = tuple(
+  ('dclaw', task) for task in _DCLAW_TASKS if not _is_pose(('dclaw', task))
+)
 _VALVE_RANDOM_TASKS = tuple(
-  t for t in suite.RANDOM + suite.RANDOM_DYNAMICS if not _is_pose(t)
+  t for t in suite.RANDOM + suite.RANDOM_DYNAMICS if t in _VALVE_TASKS
 )
 
 
@@ -131,36 +115,10 @@ def _expected_terms(env, task_id):
 # --- Observations ------------------------------------------------------------
 
 
-def test_agent_observation_is_robels_flat_layout(task_id, shared_env):
-  env = shared_env(task_id)
-  keys, layout, size = (
-    (_POSE_KEYS, _POSE_LAYOUT, 27)
-    if _is_pose(task_id)
-    else (_VALVE_KEYS, _VALVE_LAYOUT, 21)
-  )
-  assert env.task.agent_observation_keys == keys
-  rng = np.random.default_rng(1)
-  timestep = env.reset()
-  action = np.zeros(9)  # last_action is zeros after reset.
-  for _ in range(4):
-    flat = env.task.flatten_observation(timestep.observation)
-    assert flat.shape == (size,)
-    assert flat.dtype == np.float64
-    for key, where in layout.items():
-      np.testing.assert_array_equal(
-        flat[where], np.ravel(timestep.observation[key])
-      )
-    np.testing.assert_array_equal(timestep.observation['last_action'], action)
-    action = rng.uniform(-1, 1, 9)
-    timestep = env.step(action)
-  # Agent keys come first in the observation dict, then the signals.
-  assert tuple(timestep.observation) == keys + ('score', 'success', 'safety')
-
-
 def test_noise_free_observations_match_the_true_state(
-  nominal_task_id, shared_env
+  dclaw_nominal_task_id, shared_env
 ):
-  task_id = nominal_task_id
+  task_id = dclaw_nominal_task_id
   env = shared_env(task_id)
   assert env.task.observation_noise == 0  # Noisy ones: test_randomization.
   env.reset()
@@ -182,71 +140,13 @@ def test_noise_free_observations_match_the_true_state(
     assert _wrap(error - (env.task.goal - angle)) == pytest.approx(0, abs=1e-9)
 
 
-def test_custom_observation_keys_set_the_order():
-  keys = ('qvel', 'qpos')
-  env = suite.load('dclaw', 'pose_fixed', seed=0,
-                   task_kwargs={'observation_keys': keys})  # fmt: skip
-  assert env.task.agent_observation_keys == keys
-  env.reset()
-  obs = env.step(np.full(9, 0.3)).observation
-  assert tuple(obs)[:2] == keys
-  assert 'qpos_error' not in obs
-  flat = env.task.flatten_observation(obs)
-  np.testing.assert_array_equal(flat[:9], _claw(env).qvel)
-  np.testing.assert_array_equal(flat[9:], _claw(env).qpos)
-
-
-def test_every_feature_and_the_reward_terms_can_be_observed(task_id):
-  features = tuple(suite.load(*task_id).task.FEATURES)
-  env = suite.load(*task_id, seed=0,
-                   task_kwargs={'observation_keys': features})  # fmt: skip
-  env.task.task_observables['reward_terms'].enabled = True
-  timestep = env.reset()
-  spec = env.observation_spec()  # After the reset that applied the flag.
-  assert tuple(spec) == features + ('score', 'success', 'safety',
-                                    'reward_terms')  # fmt: skip
-  rng = np.random.default_rng(10)
-  for _ in range(3):
-    for key, value in timestep.observation.items():
-      spec[key].validate(value)
-    timestep = env.step(rng.uniform(-1, 1, 9))
-    terms = timestep.observation['reward_terms']
-    np.testing.assert_array_equal(terms, list(env.task.reward_terms.values()))
-    assert terms.sum() == pytest.approx(timestep.reward, abs=1e-12)
-
-
-def test_signals_are_finite_and_typed_every_step(task_id, shared_env):
-  env = shared_env(task_id)
-  rng = np.random.default_rng(3)
-  timestep = env.reset()
-  seen_last = False
-  for step in range(env.task.episode_steps + 2):
-    if step:
-      timestep = env.step(rng.uniform(-1, 1, 9))
-    if timestep.first():
-      assert timestep.reward is None
-    else:
-      assert type(timestep.reward) in (float, np.float64)
-      assert math.isfinite(timestep.reward)
-    seen_last |= timestep.last()
-    obs = timestep.observation
-    assert obs['score'].dtype == np.float64 and obs['score'].shape == ()
-    assert np.isfinite(obs['score'])
-    assert obs['success'].dtype == np.bool_ and obs['success'].shape == ()
-    assert obs['safety'].dtype == np.int32 and obs['safety'].shape == (3,)
-    assert np.all((obs['safety'] >= 0) & (obs['safety'] <= 9))
-    assert obs['safety'][2] == 0  # No current is simulated.
-    for key in env.task.agent_observation_keys:
-      assert obs[key].dtype == np.float64
-      assert np.all(np.isfinite(obs[key]))
-    assert all(math.isfinite(v) for v in env.task.reward_terms.values())
-  assert seen_last
-
-
 # --- Rewards, scores, success ------------------------------------------------
 
 
-def test_reward_is_the_sum_of_robels_terms_on_real_steps(task_id, shared_env):
+def test_reward_is_the_sum_of_robels_terms_on_real_steps(
+  dclaw_task_id, shared_env
+):
+  task_id = dclaw_task_id
   env = shared_env(task_id)
   rng = np.random.default_rng(4)
   env.reset()
@@ -476,131 +376,6 @@ def test_fixed_valve_tasks_start_at_zero():
     env.step(np.zeros(9))
     moved = env.task.goal - goal - velocity * 0.1
     assert _wrap(moved) == pytest.approx(0.0, abs=1e-12)
-
-
-# --- Safety ------------------------------------------------------------------
-
-
-def test_action_ranges_are_robels(task_id, shared_env):
-  env = shared_env(task_id)
-  ctrlrange = env.physics.bind(env.task.robot.actuators).ctrlrange
-  np.testing.assert_allclose(ctrlrange[:, 0], _LOW)
-  np.testing.assert_allclose(ctrlrange[:, 1], _HIGH)
-
-
-def test_safety_counters_on_hand_built_states(task_id, shared_env):
-  env = shared_env(task_id)
-  env.reset()
-  qpos = np.array([0.43, -1.04, 1.47, -0.58, 0.0, 0.0, 0.0, 1.0, -1.5])
-  qvel = np.array([1.5, -1.2, 0.9, -0.99, 0.0, 3.0, 0.0, 0.0, -1.01])
-  near_limit = np.minimum(qpos - _LOW, _HIGH - qpos) < _SAFETY_MARGIN
-  too_fast = np.abs(qvel) > _SAFETY_SPEED
-  assert (near_limit.sum(), too_fast.sum()) == (5, 4)  # The test's own data.
-  valve = {} if _is_pose(task_id) else {'valve_qpos': 0.0, 'valve_qvel': 5.0}
-  _set_state(env, qpos, qvel, **valve)  # The valve's speed does not count.
-  np.testing.assert_array_equal(_signal(env, 'safety'), [5, 4, 0])
-  _set_state(env, np.zeros(9), np.zeros(9), **valve)
-  np.testing.assert_array_equal(_signal(env, 'safety'), [0, 0, 0])
-  _set_state(env, _HIGH, -2 * np.ones(9), **valve)
-  np.testing.assert_array_equal(_signal(env, 'safety'), [9, 9, 0])
-
-
-# --- Actions -----------------------------------------------------------------
-
-
-def _ctrl(env):
-  return env.physics.bind(env.task.robot.actuators).ctrl.copy()
-
-
-def test_action_mapping_and_velocity_clamp(task_id, shared_env):
-  env = shared_env(task_id)
-  env.reset()
-  max_step = _MAX_JOINT_SPEED * env.control_timestep()
-  qpos = np.tile([0.1, -0.5, 0.6], 3)
-  # Violates the clamp: full range moves much further than one step allows.
-  big = np.array([1, 1, 1, -1, -1, -1, 1, -1, 0.5])
-  # Respects it: targets 0.4 steps away from the current position.
-  target = qpos + 0.4 * max_step * np.array([1, -1, 1, 1, 0, -1, 1, -1, 1])
-  small = target / _HALF_RANGE
-  assert np.all(np.abs(small) <= 1)
-  for action, clamped in ((big, True), (small, False)):
-    _set_state(env, qpos, np.zeros(9))
-    env.task.before_step(env.physics, action, env.random_state)
-    mapped = action * _HALF_RANGE  # Centre 0, half range.
-    expected = np.clip(mapped, qpos - max_step, qpos + max_step)
-    assert np.any(expected != mapped) == clamped
-    np.testing.assert_allclose(_ctrl(env), expected, atol=1e-12)
-  assert np.abs(_ctrl(env) - target).max() < 1e-12
-
-
-def test_last_action_and_ctrl_after_real_steps(task_id, shared_env):
-  env = shared_env(task_id)
-  env.reset()
-  rng = np.random.default_rng(7)
-  max_step = _MAX_JOINT_SPEED * env.control_timestep()
-  for _ in range(5):
-    qpos = _claw(env).qpos.copy()
-    action = rng.uniform(-1, 1, 9)
-    timestep = env.step(action)
-    np.testing.assert_array_equal(timestep.observation['last_action'], action)
-    expected = np.clip(action * _HALF_RANGE, qpos - max_step, qpos + max_step)
-    np.testing.assert_allclose(_ctrl(env), expected, atol=1e-12)
-
-
-_BAD_ACTIONS = {
-  'nan': (np.r_[0.0, np.nan, np.zeros(7)], 'non-finite'),
-  'inf': (np.r_[np.zeros(8), np.inf], 'non-finite'),
-  '-inf': (np.r_[-np.inf, np.zeros(8)], 'non-finite'),
-  'short': (np.zeros(8), 'shape'),
-  'column': (np.zeros((9, 1)), 'shape'),
-  'scalar': (np.float64(0.0), 'shape'),
-  'out_of_range': (np.r_[np.zeros(4), 1.5, np.zeros(4)], 'outside'),
-}
-
-
-@pytest.mark.parametrize('kind', list(_BAD_ACTIONS))
-def test_bad_actions_raise_and_leave_ctrl_alone(kind, shared_env):
-  env = shared_env(('dclaw', 'turn_fixed'))
-  env.reset()
-  env.step(np.full(9, 0.2))
-  before = _ctrl(env)
-  action, message = _BAD_ACTIONS[kind]
-  with pytest.raises(ValueError, match=message):
-    env.step(action)
-  np.testing.assert_array_equal(_ctrl(env), before)
-  assert np.all(np.isfinite(env.physics.data.ctrl))
-  # The environment carries on normally.
-  timestep = env.step(np.zeros(9))
-  assert timestep.mid()
-  np.testing.assert_array_equal(timestep.observation['last_action'], 0.0)
-
-
-def test_clip_mode_clips_out_of_range_actions_but_not_nan():
-  env = suite.load('dclaw', 'pose_fixed', seed=0,
-                   task_kwargs={'action_bounds': 'clip'})  # fmt: skip
-  env.reset()
-  action = np.array([1.5, -3.0, 0.2, 1.0, -1.0, 7.0, 0.0, -1.01, 0.5])
-  clipped = np.clip(action, -1, 1)
-  qpos = _claw(env).qpos.copy()
-  timestep = env.step(action)
-  np.testing.assert_array_equal(timestep.observation['last_action'], clipped)
-  max_step = _MAX_JOINT_SPEED * 0.05
-  expected = np.clip(clipped * _HALF_RANGE, qpos - max_step, qpos + max_step)
-  np.testing.assert_allclose(_ctrl(env), expected, atol=1e-12)
-  before = _ctrl(env)
-  with pytest.raises(ValueError, match='non-finite'):
-    env.step(np.r_[np.nan, np.zeros(8)])
-  np.testing.assert_array_equal(_ctrl(env), before)
-
-
-def test_rounding_excess_is_clipped_even_when_raising():
-  env = suite.load('dclaw', 'pose_fixed', seed=0)
-  env.reset()
-  action = np.r_[1 + 1e-9, -1 - 1e-9, np.zeros(7)]
-  timestep = env.step(action)
-  np.testing.assert_array_equal(
-    timestep.observation['last_action'], np.r_[1.0, -1.0, np.zeros(7)]
-  )
 
 
 # --- The 4-prong valve -------------------------------------------------------

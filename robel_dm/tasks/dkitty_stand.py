@@ -119,7 +119,9 @@ class StandTask(base.RobelTask):
       pose = variation.evaluate(self._initial_pose, random_state=random_state)
     self._kitty.reset(physics, random_state, pose)
     # Let the robot settle on its legs, then start the clock at 0.
-    physics.step(self.settle_substeps)
+    # (dm_control's step(0) would still finish one pending step.)
+    if self.settle_substeps:
+      physics.step(self.settle_substeps)
     physics.data.time = 0.0
     physics.forward()
     self._reference_start = physics.bind(self.robot.joints).qpos.copy()
