@@ -61,6 +61,8 @@ def load(
   time_limit: float | None = None,
   task_kwargs: dict[str, Any] | None = None,
   environment_kwargs: dict[str, Any] | None = None,
+  device_path: str | None = None,
+  robot_config=None,
 ) -> Environment:
   """Builds a task's environment.
 
@@ -73,6 +75,11 @@ def load(
       ends at the first control step at or after this time.
     task_kwargs: keyword arguments of the task, e.g. `{'valve': 'valve4'}`.
     environment_kwargs: extra `composer.Environment` arguments.
+    device_path: run on a real robot: the Dynamixel bus's serial device
+      (e.g. '/dev/ttyUSB0'), or 'virtual' for an in-process virtual bus
+      driven by a simulation. None (default) simulates.
+    robot_config: with `device_path`: a `RobotConfig` or the path of a JSON
+      robot configuration; ROBEL's configuration of the domain by default.
 
   Returns:
     A `dm_env.Environment` (a `composer.Environment`).
@@ -95,8 +102,26 @@ def load(
   # physics timesteps fall just short of round numbers (40 x 0.1 s sums to
   # 3.9999...): without this margin a 4 s limit would run 41 steps.
   time_limit -= _TIME_LIMIT_MARGIN
-  return Environment(
+  if device_path is None:
+    if robot_config is not None:
+      raise ValueError('robot_config needs a device_path')
+    return Environment(
+      task_instance,
+      time_limit=time_limit,
+      random_state=seed,
+      **(environment_kwargs or {}),
+    )
+  # Imported here: the hardware layer needs the optional dynamixel_sdk.
+  from robel_dm.hardware import environment as hardware  # noqa: PLC0415
+
+  return hardware.make_environment(
     task_instance,
+    domain=domain,
+    task_name=task,
+    device_path=device_path,
+    robot_config=robot_config,
+    task_kwargs=task_kwargs,
+    seed=seed,
     time_limit=time_limit,
     random_state=seed,
     **(environment_kwargs or {}),

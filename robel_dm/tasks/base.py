@@ -90,6 +90,7 @@ class RobelTask(composer.Task):
     observation_noise: float = 0.0,
     observation_keys: tuple[str, ...] | None = None,
     action_bounds: str = 'raise',
+    root_joint: mjcf.Element | None = None,
   ):
     """Initializes the task.
 
@@ -109,6 +110,7 @@ class RobelTask(composer.Task):
         ROBEL's default keys for this task.
       action_bounds: 'raise' (default) rejects actions outside [-1, 1];
         'clip' clips them as ROBEL did.
+      root_joint: the free joint of a free-floating robot, or None.
 
     Raises:
       ValueError: for unknown observation keys, a bad `action_bounds`, a
@@ -137,6 +139,7 @@ class RobelTask(composer.Task):
 
     self._arena = arena
     self._robot = robot
+    self._root_joint = root_joint
     self._episode_steps = episode_steps
     self._clip_actions = action_bounds == 'clip'
     self._observation_noise = observation_noise
@@ -244,6 +247,11 @@ class RobelTask(composer.Task):
     return self._robot
 
   @property
+  def root_joint(self) -> mjcf.Element | None:
+    """The free joint of a free-floating robot (D'Kitty), else None."""
+    return self._root_joint
+
+  @property
   def task_observables(self) -> collections.OrderedDict:
     return self._task_observables
 
@@ -291,6 +299,14 @@ class RobelTask(composer.Task):
     return np.concatenate(
       [np.ravel(observation[key]) for key in self._agent_keys]
     )
+
+  def hardware_auxiliary_joints(self) -> dict[str, mjcf.Element]:
+    """Non-robot motors the task reads on hardware: name -> model joint.
+
+    The names match a robot configuration's auxiliary motors (e.g. the
+    D'Claw's 'valve' encoder).
+    """
+    return {}
 
   def reference_action(self, physics) -> np.ndarray:
     """The action of the task's scripted reference controller.
@@ -373,6 +389,12 @@ class RobelTask(composer.Task):
     )
     if self._randomizer is not None:
       self._randomizer.after_compile(physics)
+    # A hardware physics measures the motors' currents (mA); simulation has
+    # none, and the current counter then stays 0.
+    currents = getattr(physics, 'motor_currents', None)
+    self._current_measured = currents is not None
+    if currents is not None:
+      self._current = currents
 
   def initialize_episode(self, physics, random_state) -> None:
     if self._randomizer is not None:
@@ -381,6 +403,11 @@ class RobelTask(composer.Task):
     self._error_sum, self._error_count = 0.0, 0
     self._failed = False
     self._initialize_state(physics, random_state)
+    # On hardware the motors must be driven to the state just set, and the
+    # first observation must come from where they actually are.
+    realize = getattr(physics, 'realize_initial_state', None)
+    if realize is not None:
+      realize()
     self._update(physics, random_state)
 
   def before_step(self, physics, action, random_state) -> None:

@@ -136,6 +136,10 @@ class TurnTask(base.RobelTask):
   def valve(self) -> valve_lib.Valve:
     return self._valve
 
+  def hardware_auxiliary_joints(self) -> dict:
+    """On hardware the valve angle comes from its motor (ID 50)."""
+    return {'valve': self._valve.hinge}
+
   @property
   def goal(self) -> float:
     """The current goal angle, rad (unwrapped when the goal moves)."""

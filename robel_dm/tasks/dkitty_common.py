@@ -209,6 +209,7 @@ class KittyParts:
       'randomizer_targets': randomization.Targets(
         joints=robot.joints, actuators=robot.actuators
       ),
+      'root_joint': self.scene.root_joint,
     }
 
   def bind_features(self, torso_span: np.ndarray, joint_span: np.ndarray):

@@ -1,0 +1,216 @@
+"""Robot configurations: which motor drives which joint, and how.
+
+A configuration is data (JSON), so that a robot with other wiring or other
+calibration offsets needs a new file, not new code. The shipped defaults are
+ROBEL's (robel_facts 4.1): `configs/dclaw.json` and `configs/dkitty.json`.
+
+Calibration maps a motor's own angle (ticks * 2 pi / 4096, rad) to the
+joint angle of the model: q = scale * motor_angle + offset; velocities are
+scaled likewise without the offset.
+
+File format (JSON object):
+  robot: 'dclaw' or 'dkitty'.
+  baud_rate: bits per second (default 1000000).
+  joints: the actuated joints in action order, each
+      {"name": str, "id": int, "scale": +1 or -1,
+       "offset": rad or "offset_pi": multiple of pi}.
+  auxiliary: other motors, e.g. the D'Claw's valve encoder, same fields plus
+      "optional": bool and "required_by": [task family, ...].
+  groups: name -> list of motor IDs (for resets and torque control).
+  limits (optional): joint name -> [low, high] goal limits, rad; by default
+      the model's action range.
+"""
+
+import dataclasses
+import importlib.resources
+import json
+import math
+import os
+import pathlib
+from typing import Any
+
+from robel_dm.hardware import control_table
+
+_MAX_ID = 252
+
+
+class ConfigError(ValueError):
+  """A robot configuration is malformed; the message says where."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Motor:
+  """One motor and its calibration.
+
+  Attributes:
+    name: joint name in the model (or an auxiliary role such as 'valve').
+    id: Dynamixel ID.
+    scale: +1 or -1: how the motor's angle maps to the joint's.
+    offset: joint angle at motor angle 0, rad.
+    optional: whether the robot may lack this motor.
+    required_by: task families that need it (auxiliary motors).
+  """
+
+  name: str
+  id: int
+  scale: float
+  offset: float
+  optional: bool = False
+  required_by: tuple[str, ...] = ()
+
+  def to_joint(self, motor_angle):
+    return self.scale * motor_angle + self.offset
+
+  def to_motor(self, joint_angle):
+    return (joint_angle - self.offset) / self.scale
+
+
+@dataclasses.dataclass(frozen=True)
+class RobotConfig:
+  """The motors of one robot and how they map to the model's joints."""
+
+  robot: str
+  joints: tuple[Motor, ...]
+  auxiliary: tuple[Motor, ...] = ()
+  groups: dict[str, tuple[int, ...]] = dataclasses.field(default_factory=dict)
+  limits: dict[str, tuple[float, float]] = dataclasses.field(
+    default_factory=dict
+  )
+  baud_rate: int = control_table.DEFAULT_BAUD_RATE
+  source: str = '<memory>'
+
+  @property
+  def joint_ids(self) -> tuple[int, ...]:
+    return tuple(motor.id for motor in self.joints)
+
+  def auxiliary_motor(self, name: str) -> Motor | None:
+    for motor in self.auxiliary:
+      if motor.name == name:
+        return motor
+    return None
+
+  def group(self, name: str) -> tuple[int, ...]:
+    try:
+      return self.groups[name]
+    except KeyError:
+      raise ConfigError(
+        f'{self.source}: no motor group {name!r}; groups: {sorted(self.groups)}'
+      ) from None
+
+
+def _require(data: dict, key: str, where: str):
+  if key not in data:
+    raise ConfigError(f'{where}: missing "{key}"')
+  return data[key]
+
+
+def _motor(data: Any, where: str) -> Motor:
+  if not isinstance(data, dict):
+    raise ConfigError(f'{where}: expected an object, got {data!r}')
+  name = _require(data, 'name', where)
+  motor_id = _require(data, 'id', where)
+  if not isinstance(motor_id, int) or not 0 <= motor_id <= _MAX_ID:
+    raise ConfigError(f'{where} ({name}): id must be an integer 0..252')
+  scale = data.get('scale', 1)
+  if scale not in (1, -1, 1.0, -1.0):
+    raise ConfigError(f'{where} ({name}): scale must be 1 or -1, got {scale}')
+  if 'offset' in data and 'offset_pi' in data:
+    raise ConfigError(f'{where} ({name}): give "offset" or "offset_pi"')
+  offset = data.get('offset', math.pi * data.get('offset_pi', 0.0))
+  if not isinstance(offset, (int, float)) or not math.isfinite(offset):
+    raise ConfigError(f'{where} ({name}): offset must be a finite number')
+  unknown = set(data) - {
+    'name', 'id', 'scale', 'offset', 'offset_pi', 'optional', 'required_by'
+  }  # fmt: skip
+  if unknown:
+    raise ConfigError(f'{where} ({name}): unknown fields {sorted(unknown)}')
+  return Motor(
+    name=str(name),
+    id=motor_id,
+    scale=float(scale),
+    offset=float(offset),
+    optional=bool(data.get('optional', False)),
+    required_by=tuple(data.get('required_by', ())),
+  )
+
+
+def from_dict(data: dict, source: str = '<memory>') -> RobotConfig:
+  """Validates and builds a configuration.
+
+  Raises:
+    ConfigError: naming the file and the offending entry.
+  """
+  if not isinstance(data, dict):
+    raise ConfigError(f'{source}: a configuration is a JSON object')
+  robot = _require(data, 'robot', source)
+  joints = tuple(
+    _motor(entry, f'{source}: joints[{i}]')
+    for i, entry in enumerate(_require(data, 'joints', source))
+  )
+  auxiliary = tuple(
+    _motor(entry, f'{source}: auxiliary[{i}]')
+    for i, entry in enumerate(data.get('auxiliary', ()))
+  )
+  ids = [motor.id for motor in joints + auxiliary]
+  duplicates = sorted({i for i in ids if ids.count(i) > 1})
+  if duplicates:
+    raise ConfigError(f'{source}: motor IDs used twice: {duplicates}')
+  groups = {}
+  for name, members in data.get('groups', {}).items():
+    unknown = sorted(set(members) - set(ids))
+    if unknown:
+      raise ConfigError(f'{source}: group {name!r} has unknown IDs {unknown}')
+    groups[name] = tuple(members)
+  limits = {}
+  joint_names = {motor.name for motor in joints}
+  for name, bounds in data.get('limits', {}).items():
+    if name not in joint_names:
+      raise ConfigError(f'{source}: limits for unknown joint {name!r}')
+    if (
+      len(bounds) != 2
+      or not all(math.isfinite(b) for b in bounds)
+      or bounds[0] >= bounds[1]
+    ):
+      raise ConfigError(f'{source}: limits of {name} must be [low, high]')
+    limits[name] = (float(bounds[0]), float(bounds[1]))
+  baud_rate = int(data.get('baud_rate', control_table.DEFAULT_BAUD_RATE))
+  if baud_rate not in control_table.BAUD_RATES.values():
+    raise ConfigError(
+      f'{source}: baud_rate {baud_rate} is not a Dynamixel rate '
+      f'{sorted(control_table.BAUD_RATES.values())}'
+    )
+  return RobotConfig(
+    robot=str(robot),
+    joints=joints,
+    auxiliary=auxiliary,
+    groups=groups,
+    limits=limits,
+    baud_rate=baud_rate,
+    source=source,
+  )
+
+
+def load(path: str | os.PathLike) -> RobotConfig:
+  """Loads a configuration file.
+
+  Raises:
+    ConfigError: if the file is missing, not JSON or malformed.
+  """
+  path = pathlib.Path(path)
+  try:
+    data = json.loads(path.read_text())
+  except FileNotFoundError:
+    raise ConfigError(f'robot configuration not found: {path}') from None
+  except json.JSONDecodeError as error:
+    raise ConfigError(f'{path}: not valid JSON: {error}') from None
+  return from_dict(data, source=str(path))
+
+
+def default(robot: str) -> RobotConfig:
+  """ROBEL's configuration of `robot` ('dclaw' or 'dkitty')."""
+  resource = (
+    importlib.resources.files(__package__) / 'configs' / f'{robot}.json'
+  )
+  if not resource.is_file():
+    raise ConfigError(f'no shipped configuration for robot {robot!r}')
+  return from_dict(json.loads(resource.read_text()), source=f'default {robot}')

@@ -1,0 +1,184 @@
+"""A physics whose state comes from the robot's motors.
+
+`HardwarePhysics` is an `mjcf.Physics` that does not integrate: once per
+control step it sends the actuators' targets (`data.ctrl`) to the motors as
+goal positions, waits for the control tick, reads the motors back, writes
+their joint angles and velocities into `qpos`/`qvel`, advances `time` and
+runs `mj_forward`. Every observable, reward and safety counter of the task
+then works unchanged, from measured state.
+"""
+
+import logging
+
+from dm_control import mjcf
+import mujoco
+import numpy as np
+
+from robel_dm.hardware import clock as clock_lib
+from robel_dm.hardware import robot as robot_lib
+
+# Reset moves (robel_facts 4.3, 4.4): the move ends when every joint is
+# within the tolerance, when no joint moved more than the stall tolerance for
+# two polls, or at the timeout; a joint still off by more than the warning
+# tolerance (ROBEL's "good reset", 5 degrees) is reported.
+_RESET_TOLERANCE = np.deg2rad(1.0)  # rad
+_RESET_STALL_TOLERANCE = np.deg2rad(1.0)  # rad per poll
+_RESET_STALL_POLLS = 2
+_RESET_WARNING_TOLERANCE = np.deg2rad(5.0)  # rad
+_RESET_POLL_INTERVAL = 0.25  # s
+_RESET_TIMEOUT = 3.0  # s
+# A control step later than this past its tick is logged, s.
+_OVERRUN_TOLERANCE = 0.005
+_OVERRUN_LOG_INTERVAL = 1.0  # s
+
+
+class HardwarePhysics(mjcf.Physics):
+  """mjcf.Physics driven by real (or virtual) motors. Call `attach` first."""
+
+  def attach(
+    self,
+    robot: robot_lib.HardwareRobot,
+    joints,
+    actuators,
+    auxiliary_joints: dict,
+    clock: clock_lib.Clock,
+    control_timestep: float,
+    torso_source=None,
+    root_joint=None,
+  ) -> None:
+    """Connects the physics to the motors.
+
+    Args:
+      robot: the motors, joints first in action order, then auxiliaries.
+      joints: the model's actuated joints, in action order.
+      actuators: their actuators, in the same order.
+      auxiliary_joints: auxiliary motor name -> model joint it measures.
+      clock: paces the control loop.
+      control_timestep: seconds per control step.
+      torso_source: callable returning (position, quaternion, linear
+        velocity, angular velocity in the body frame) of a free-floating
+        robot's root, or None.
+      root_joint: the model's free joint that `torso_source` drives.
+    """
+    self._robot = robot
+    self._clock = clock
+    self._period = control_timestep
+    self._substeps = max(1, round(control_timestep / self.model.opt.timestep))
+    self._pending_substeps = 0
+    bound = self.bind(list(joints) + list(auxiliary_joints.values()))
+    self._qpos_index = np.asarray(bound.qposadr, int)
+    self._qvel_index = np.asarray(bound.dofadr, int)
+    self._ctrl_index = np.asarray(self.bind(list(actuators)).element_id, int)
+    self._n_joints = len(joints)
+    self._auxiliary_names = tuple(auxiliary_joints)
+    ctrl_range = self.bind(list(actuators)).ctrlrange
+    robot.set_joint_limits(ctrl_range[:, 0], ctrl_range[:, 1])
+    self.motor_currents = np.zeros(len(joints))  # mA, read by the task.
+    self._torso_source = torso_source
+    if torso_source is not None:
+      root = self.bind(root_joint)
+      self._root_qpos = int(root.qposadr)
+      self._root_dof = int(root.dofadr)
+    self._next_tick = None
+    self._last_overrun_log = -np.inf
+
+  @property
+  def robot(self) -> robot_lib.HardwareRobot:
+    return self._robot
+
+  def step(self, nstep: int = 1) -> None:
+    """Exchanges with the motors once per control step (its last substep)."""
+    self._pending_substeps += nstep
+    if self._pending_substeps < self._substeps:
+      return
+    self._pending_substeps = 0
+    try:
+      self._robot.write_joint_goals(self.data.ctrl[self._ctrl_index])
+      self._wait_for_tick()
+      self._read_motors()
+      self._robot.check_health()
+    except BaseException:
+      # An error, Ctrl-C or a motor fault: never leave the motors powered.
+      self._robot.release()
+      raise
+    self.data.time += self._substeps * self.model.opt.timestep
+    mujoco.mj_forward(self.model.ptr, self.data.ptr)
+
+  def realize_initial_state(self) -> None:
+    """Drives the motors to the joint state the task set, then reads back.
+
+    A bounded blocking move (ROBEL: tolerance 1 degree, timeout 3 s).
+    Auxiliary motors (the valve) are driven to their initial angle and then
+    released for the episode.
+    """
+    try:
+      desired = self.data.qpos[self._qpos_index].copy()
+      robot = self._robot
+      robot.set_torque(True)
+      deadline = self._clock.now() + _RESET_TIMEOUT
+      robot.read()
+      previous, stalled = robot.positions.copy(), 0
+      while True:
+        robot.write_joint_goals(desired[: self._n_joints])
+        for name in self._auxiliary_names:
+          index = robot.auxiliary_index(name)
+          robot.write_auxiliary_goal(name, desired[index])
+        self._clock.sleep_until(self._clock.now() + _RESET_POLL_INTERVAL)
+        robot.read()
+        error = np.abs(robot.positions - desired)
+        moved = np.abs(robot.positions - previous).max()
+        previous[:] = robot.positions
+        stalled = stalled + 1 if moved < _RESET_STALL_TOLERANCE else 0
+        if (
+          error.max() <= _RESET_TOLERANCE
+          or stalled >= _RESET_STALL_POLLS
+          or self._clock.now() >= deadline
+        ):
+          break
+      off = error > _RESET_WARNING_TOLERANCE
+      if off.any():
+        logging.warning(
+          'reset: motors %s stopped %s rad from the initial pose',
+          np.asarray(robot.motor_ids)[off].tolist(),
+          np.round(error[off], 3).tolist(),
+        )
+      if robot.auxiliary:
+        robot.set_torque(False, [motor.id for motor in robot.auxiliary])
+      robot.check_health(force=True)
+      self._read_motors()
+    except BaseException:
+      self._robot.release()
+      raise
+    self.data.time = 0.0
+    self._pending_substeps = 0
+    self._next_tick = self._clock.now() + self._period
+    mujoco.mj_forward(self.model.ptr, self.data.ptr)
+
+  def _wait_for_tick(self) -> None:
+    clock = self._clock
+    now = clock.now()
+    if self._next_tick is None:
+      self._next_tick = now + self._period
+    late = now - self._next_tick
+    if late > _OVERRUN_TOLERANCE and now - self._last_overrun_log > (
+      _OVERRUN_LOG_INTERVAL
+    ):
+      logging.warning('control step %.1f ms late', late * 1e3)
+      self._last_overrun_log = now
+    clock.sleep_until(self._next_tick)
+    # After an overrun, keep the period from now rather than bursting.
+    self._next_tick = max(self._next_tick, now) + self._period
+
+  def _read_motors(self) -> None:
+    robot = self._robot
+    robot.read()
+    self.data.qpos[self._qpos_index] = robot.positions
+    self.data.qvel[self._qvel_index] = robot.velocities
+    self.motor_currents[:] = robot.currents[: self._n_joints]
+    if self._torso_source is not None:
+      position, quaternion, velocity, angular_velocity = self._torso_source()
+      qpos, dof = self._root_qpos, self._root_dof
+      self.data.qpos[qpos : qpos + 3] = position
+      self.data.qpos[qpos + 3 : qpos + 7] = quaternion
+      self.data.qvel[dof : dof + 3] = velocity
+      self.data.qvel[dof + 3 : dof + 6] = angular_velocity

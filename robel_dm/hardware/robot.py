@@ -1,0 +1,172 @@
+"""A robot's motors in joint space: calibrated state, limited goals, health."""
+
+import dataclasses
+import logging
+
+import numpy as np
+
+from robel_dm.hardware import config as config_lib
+from robel_dm.hardware import control_table as table
+from robel_dm.hardware import dynamixel
+
+
+@dataclasses.dataclass(frozen=True)
+class HealthLimits:
+  """Limits that stop an episode and release the motors.
+
+  Attributes:
+    max_current: |current| above this on any motor is a fault, mA.
+    max_temperature: temperature above this on any motor is a fault, C.
+    check_every: control steps between reads of the hardware-error and
+      temperature registers (one read per motor each).
+  """
+
+  max_current: float = 1500.0
+  max_temperature: float = 70.0
+  check_every: int = 10
+
+
+class HardwareRobot:
+  """The motors that drive a model's joints, in joint units.
+
+  `motors` are the actuated joints in action order, then any auxiliary
+  motors the task reads (e.g. the D'Claw's valve encoder). Reads convert
+  motor angles to joint angles with each motor's calibration; goals are
+  clamped to the joints' limits before they are converted and sent.
+  """
+
+  def __init__(
+    self,
+    client: dynamixel.DynamixelClient,
+    joints: tuple[config_lib.Motor, ...],
+    auxiliary: tuple[config_lib.Motor, ...] = (),
+    health: HealthLimits = HealthLimits(),
+  ):
+    self._client = client
+    self._joints = joints
+    self._auxiliary = auxiliary
+    motors = joints + auxiliary
+    index = {motor_id: i for i, motor_id in enumerate(client.motor_ids)}
+    missing = [m.id for m in motors if m.id not in index]
+    if missing:
+      raise ValueError(f'motors {missing} are not on the client')
+    self._columns = np.array([index[m.id] for m in motors])
+    self._scale = np.array([m.scale for m in motors])
+    self._offset = np.array([m.offset for m in motors])
+    self._joint_ids = tuple(m.id for m in joints)
+    self._limits = (np.full(len(joints), -np.inf), np.full(len(joints), np.inf))
+    self._health = health
+    self._steps_since_check = 0
+    self.positions = np.zeros(len(motors))  # Joint angles, rad.
+    self.velocities = np.zeros(len(motors))  # rad/s.
+    self.currents = np.zeros(len(motors))  # mA.
+
+  @property
+  def client(self) -> dynamixel.DynamixelClient:
+    return self._client
+
+  @property
+  def joint_ids(self) -> tuple[int, ...]:
+    return self._joint_ids
+
+  @property
+  def motor_ids(self) -> tuple[int, ...]:
+    """IDs in the order of `positions`: joints, then auxiliary motors."""
+    return self._joint_ids + tuple(m.id for m in self._auxiliary)
+
+  @property
+  def auxiliary(self) -> tuple[config_lib.Motor, ...]:
+    return self._auxiliary
+
+  def set_joint_limits(self, low, high) -> None:
+    """Goal limits of the actuated joints, rad."""
+    self._limits = (np.asarray(low, float), np.asarray(high, float))
+
+  def read(self) -> None:
+    """Reads every motor into `positions`, `velocities`, `currents`.
+
+    Raises:
+      dynamixel.DynamixelError: on communication failure.
+      dynamixel.MotorFaultError: on over-current.
+    """
+    state = self._client.read_state()[:, self._columns]
+    np.multiply(state[2], self._scale, out=self.positions)
+    self.positions += self._offset
+    np.multiply(state[1], self._scale, out=self.velocities)
+    # Current is not calibrated (ROBEL leaves its sign as the motor's).
+    self.currents[:] = state[0]
+    over = np.flatnonzero(np.abs(self.currents) > self._health.max_current)
+    if over.size:
+      ids = [self.motor_ids[i] for i in over]
+      raise dynamixel.MotorFaultError(
+        f'over-current on motors {ids}: '
+        f'{self.currents[over].round().tolist()} mA '
+        f'(limit {self._health.max_current} mA)',
+        {motor_id: 0 for motor_id in ids},
+      )
+
+  def write_joint_goals(self, targets) -> np.ndarray:
+    """Sends goals for the actuated joints, clamped to their limits.
+
+    Returns:
+      The goals sent, rad.
+
+    Raises:
+      ValueError: for non-finite targets (nothing is sent).
+    """
+    targets = np.asarray(targets, dtype=float)
+    if not np.all(np.isfinite(targets)):
+      raise ValueError(f'non-finite joint goals {targets.tolist()}')
+    goals = np.clip(targets, *self._limits)
+    n = len(self._joints)
+    motor_angles = (goals - self._offset[:n]) / self._scale[:n]
+    self._client.write_goal_positions(motor_angles, self._joint_ids)
+    return goals
+
+  def write_auxiliary_goal(self, name: str, joint_angle: float) -> None:
+    """Sends a goal to an auxiliary motor (e.g. the valve during a reset)."""
+    motor = self._find_auxiliary(name)
+    self._client.write_goal_positions([motor.to_motor(joint_angle)], [motor.id])
+
+  def auxiliary_index(self, name: str) -> int:
+    """Index of an auxiliary motor in `positions` and friends."""
+    motor = self._find_auxiliary(name)
+    return len(self._joints) + self._auxiliary.index(motor)
+
+  def _find_auxiliary(self, name: str) -> config_lib.Motor:
+    for motor in self._auxiliary:
+      if motor.name == name:
+        return motor
+    raise KeyError(f'no auxiliary motor {name!r}')
+
+  def set_torque(self, enabled: bool, motor_ids=None) -> None:
+    ids = self._client.motor_ids if motor_ids is None else motor_ids
+    self._client.set_torque(ids, enabled)
+
+  def check_health(self, force: bool = False) -> None:
+    """Every `check_every` calls (or now), reads error and temperature.
+
+    Raises:
+      dynamixel.MotorFaultError: on a hardware error or over-temperature.
+    """
+    self._steps_since_check += 1
+    if not force and self._steps_since_check < self._health.check_every:
+      return
+    self._steps_since_check = 0
+    self._client.raise_on_hardware_errors()
+    temperatures = self._client.read_register(table.PRESENT_TEMPERATURE)
+    hot = {
+      i: t for i, t in temperatures.items() if t > self._health.max_temperature
+    }
+    if hot:
+      raise dynamixel.MotorFaultError(
+        f'over-temperature (C) {hot}, limit {self._health.max_temperature}',
+        hot,
+      )
+
+  def release(self) -> None:
+    """Turns every motor's torque off; logs instead of raising."""
+    try:
+      self._client.set_torque(self._client.motor_ids, False)
+    except dynamixel.DynamixelError as error:
+      logging.error('could not release the motors: %s', error)

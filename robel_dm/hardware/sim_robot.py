@@ -1,0 +1,201 @@
+"""A MuJoCo-simulated robot behind the virtual servo bus.
+
+`SimulatedRobot` is a virtual-bus `Driver`: it simulates the task's scene
+(robot, valve, floor) and turns the goal positions and torque switches the
+bus receives into actuator targets, and the simulated joints back into the
+motors' present position, velocity and current, through the same
+calibration a real robot's configuration describes. Time advances either on
+request (`advance`, used by a `SimulatedClock`: deterministic, as fast as
+the machine allows) or with the wall clock (a standalone bus).
+"""
+
+import math
+import threading
+import time
+
+import mujoco
+
+from robel_dm import suite
+from robel_dm.hardware import config as config_lib
+from robel_dm.hardware import control_table as table
+
+# Position gain (N m/rad) and damping (N m s/rad) of an auxiliary motor
+# holding a goal (the valve during resets); it has no actuator in the model.
+_AUXILIARY_KP = 2.0
+_AUXILIARY_KV = 0.1
+# Torque per ampere used to report a current from the actuator force, N m/A
+# (an XH430-V350 stalls at about 4.8 N m and 2.2 A).
+_TORQUE_PER_AMPERE = 2.2
+
+
+class SimulatedRobot:
+  """Simulates a task's robot for the virtual bus (thread-safe)."""
+
+  def __init__(
+    self,
+    domain: str,
+    task: str,
+    robot_config: config_lib.RobotConfig | None = None,
+    task_kwargs=None,
+    seed: int | None = 0,
+    realtime: bool = False,
+  ):
+    """Builds the simulation.
+
+    Args:
+      domain: 'dclaw' or 'dkitty'.
+      task: the task whose scene to simulate (e.g. 'turn_fixed': with valve).
+      robot_config: motor IDs and calibration; ROBEL's by default.
+      task_kwargs: task arguments (e.g. the valve variant).
+      seed: seed of the simulated scene.
+      realtime: advance with the wall clock on every bus access, instead
+        of only when `advance` is called.
+    """
+    self._config = robot_config or config_lib.default(domain)
+    self._env = suite.load(
+      domain, task, seed=seed, task_kwargs=task_kwargs, time_limit=math.inf
+    )
+    self._env.reset()
+    physics = self._env.physics
+    self._model, self._data = physics.model.ptr, physics.data.ptr
+    self._lock = threading.RLock()
+    task_instance = self._env.task
+    robot = task_instance.robot
+    joint_names = [joint.name for joint in robot.joints]
+    if [m.name for m in self._config.joints] != joint_names:
+      raise config_lib.ConfigError(
+        f'{self._config.source}: joints '
+        f'{[m.name for m in self._config.joints]} do not match the model '
+        f'{joint_names}'
+      )
+    auxiliary_joints = task_instance.hardware_auxiliary_joints()
+    # Motor ID -> (motor, qpos address, dof address, actuator id or None).
+    self._motors = {}
+    bound = physics.bind(robot.joints)
+    actuator_ids = physics.bind(robot.actuators).element_id
+    for i, motor in enumerate(self._config.joints):
+      self._motors[motor.id] = (
+        motor,
+        int(bound.qposadr[i]),
+        int(bound.dofadr[i]),
+        int(actuator_ids[i]),
+      )
+    for name, joint in auxiliary_joints.items():
+      motor = self._config.auxiliary_motor(name)
+      if motor is not None:
+        element = physics.bind(joint)
+        self._motors[motor.id] = (
+          motor,
+          int(element.qposadr),
+          int(element.dofadr),
+          None,
+        )
+    self._nominal_gain = self._model.actuator_gainprm[:, 0].copy()
+    self._auxiliary_goals: dict[int, float] = {}  # dof -> goal, rad.
+    self._root = task_instance.root_joint
+    self._realtime = realtime
+    self._last_wall_time = time.monotonic()
+
+  @property
+  def motor_ids(self) -> tuple[int, ...]:
+    return tuple(self._motors)
+
+  @property
+  def physics(self):
+    return self._env.physics
+
+  def close(self) -> None:
+    self._env.close()
+
+  # --- virtual_bus.Driver ----------------------------------------------------
+
+  def on_write(self, servos, ids) -> None:
+    with self._lock:
+      for motor_id in ids:
+        if motor_id not in self._motors:
+          continue
+        motor, _, dof, actuator = self._motors[motor_id]
+        servo = servos[motor_id]
+        goal = motor.to_joint(servo.goal_position * table.RADIANS_PER_TICK)
+        if actuator is None:
+          if servo.torque_enabled:
+            self._auxiliary_goals[dof] = goal
+          else:
+            self._auxiliary_goals.pop(dof, None)
+          continue
+        self._data.ctrl[actuator] = goal
+        # Torque off: the servo no longer holds (no position gain).
+        kp = self._nominal_gain[actuator] if servo.torque_enabled else 0.0
+        self._model.actuator_gainprm[actuator, 0] = kp
+        self._model.actuator_biasprm[actuator, 1] = -kp
+
+  def on_read(self, servos, ids) -> None:
+    with self._lock:
+      if self._realtime:
+        now = time.monotonic()
+        self._advance_locked(now - self._last_wall_time)
+        self._last_wall_time = now
+      for motor_id in ids:
+        if motor_id not in self._motors:
+          continue
+        motor, qpos, dof, actuator = self._motors[motor_id]
+        servo = servos[motor_id]
+        angle = motor.to_motor(self._data.qpos[qpos])
+        velocity = self._data.qvel[dof] / motor.scale
+        force = 0.0 if actuator is None else self._data.actuator_force[actuator]
+        unit = table.MODELS.get(servo.model_number, ('', 2.69))[1]
+        current = 1000.0 * force / _TORQUE_PER_AMPERE / motor.scale / unit
+        servo.set_present(
+          int(round(angle / table.RADIANS_PER_TICK)),
+          int(round(velocity / table.RADIANS_PER_SECOND_PER_UNIT)),
+          int(round(current)),
+        )
+
+  # --- Time ------------------------------------------------------------------
+
+  def advance(self, seconds: float) -> None:
+    """Simulates `seconds` more (rounded to whole physics steps)."""
+    with self._lock:
+      self._advance_locked(seconds)
+
+  def _advance_locked(self, seconds: float) -> None:
+    steps = int(round(seconds / self._model.opt.timestep))
+    if steps <= 0:
+      return
+    if not self._auxiliary_goals:
+      mujoco.mj_step(self._model, self._data, steps)
+      return
+    applied = self._data.qfrc_applied
+    for _ in range(steps):
+      for dof, goal in self._auxiliary_goals.items():
+        error = goal - self._data.qpos[self._dof_qpos(dof)]
+        applied[dof] = (
+          _AUXILIARY_KP * error - _AUXILIARY_KV * self._data.qvel[dof]
+        )
+      mujoco.mj_step(self._model, self._data)
+    for dof in self._auxiliary_goals:
+      applied[dof] = 0.0
+
+  def _dof_qpos(self, dof: int) -> int:
+    joint = self._model.dof_jntid[dof]
+    return int(self._model.jnt_qposadr[joint])
+
+  # --- Free-floating robots ------------------------------------------------
+
+  def torso_pose(self):
+    """The simulated root's position, quaternion, velocity and body rates.
+
+    Raises:
+      ValueError: if the robot is not free-floating.
+    """
+    if self._root is None:
+      raise ValueError('this robot has no free-floating torso')
+    with self._lock:
+      root = self.physics.bind(self._root)
+      qpos, dof = int(root.qposadr), int(root.dofadr)
+      return (
+        self._data.qpos[qpos : qpos + 3].copy(),
+        self._data.qpos[qpos + 3 : qpos + 7].copy(),
+        self._data.qvel[dof : dof + 3].copy(),
+        self._data.qvel[dof + 3 : dof + 6].copy(),
+      )

@@ -1,0 +1,313 @@
+"""The hardware layer end to end: real dynamixel_sdk, virtual servo bus.
+
+Every environment here is `suite.load(..., device_path='virtual')`: the task
+runs on `HardwarePhysics` through the unmodified SDK and an in-process
+virtual bus whose motors a MuJoCo simulation drives in simulated time.
+"""
+
+import json
+
+from dynamixel_sdk import port_handler
+import numpy as np
+import pytest
+
+from robel_dm import suite
+from robel_dm.hardware import config as config_lib
+from robel_dm.hardware import control_table as table
+from robel_dm.hardware import dynamixel, virtual_bus
+from robel_dm.hardware import environment as hardware_env
+
+# A virtual-bus episode replays a simulated one within these tolerances on
+# every entry of the agent observation (rad, rad/s, m or unitless). Sources
+# of difference: angles quantized to 2 pi / 4096 rad and velocities to
+# 0.024 rad/s on the bus; and the reset, which on the bus is a real move that
+# leaves joints sagging under gravity (up to 0.06 rad on the claw's middle
+# joints) where simulation places them exactly. Measured maxima over 30
+# steps: D'Claw 0.003 (pose) to 0.058 (turn); D'Kitty 0.025 rad in joint
+# angles and 0.11 rad/s in joint velocities (stand).
+_TRACKING_TOLERANCE = {'dclaw': 0.1, 'dkitty': 0.25}
+
+
+@pytest.fixture(autouse=True)
+def _short_sdk_timeouts(monkeypatch):
+  # A missing motor then costs ~4 ms instead of ~34 ms.
+  monkeypatch.setattr(port_handler, 'LATENCY_TIMER', 1)
+
+
+def _actions(env, steps, seed=0):
+  """Random actions; for the D'Kitty small ones around its pose at reset
+  (larger ones make it fall and end the episode early)."""
+  rng = np.random.default_rng(seed)
+  shape = env.action_spec().shape
+  if env.task.root_joint is not None:
+    joints = env.physics.bind(env.task.robot.joints).qpos
+    centre = env.task.normalize_joint_targets(joints)
+    return np.clip(centre + rng.uniform(-0.1, 0.1, (steps,) + shape), -1, 1)
+  return rng.uniform(-1, 1, (steps,) + shape)
+
+
+def _torque(bus):
+  return {servo.motor_id: servo.torque_enabled for servo in bus.servos}
+
+
+def test_every_task_runs_full_episodes_with_the_simulation_spec(task_id):
+  env = suite.load(*task_id, seed=0, device_path='virtual')
+  simulated = suite.load(*task_id, seed=0)
+  try:
+    assert env.observation_spec() == simulated.observation_spec()
+    assert env.action_spec() == simulated.action_spec()
+    timestep = env.reset()
+    actions = _actions(env, env.task.episode_steps)
+    steps = 0
+    for action in actions:
+      timestep = env.step(action)
+      steps += 1
+      assert np.all(
+        np.isfinite(env.task.flatten_observation(timestep.observation))
+      )
+      if timestep.last():
+        break
+    assert timestep.last() and steps == env.task.episode_steps
+    assert timestep.discount == 1.0
+  finally:
+    env.close()
+
+
+@pytest.mark.parametrize(
+  'tracked_task',
+  [('dclaw', 'pose_fixed'), ('dclaw', 'turn_fixed'), ('dkitty', 'stand_fixed'),
+   ('dkitty', 'walk_fixed')],
+)  # fmt: skip
+def test_virtual_bus_episode_tracks_the_simulation(tracked_task):
+  task_id = tracked_task
+  env = suite.load(*task_id, seed=0, device_path='virtual')
+  simulated = suite.load(*task_id, seed=0)
+  try:
+    hardware, sim = env.reset(), simulated.reset()
+    tolerance = _TRACKING_TOLERANCE[task_id[0]]
+    for action in _actions(simulated, 30):
+      hardware, sim = env.step(action), simulated.step(action)
+      for key in env.task.agent_observation_keys:
+        difference = np.abs(hardware.observation[key] - sim.observation[key])
+        if key == 'target_error':  # An angle: compare on the circle.
+          difference = np.minimum(difference, 2 * np.pi - difference)
+        assert difference.max() < tolerance, key
+  finally:
+    env.close()
+
+
+def test_safety_counts_measured_currents():
+  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  try:
+    env.reset()
+    currents = []
+    for action in _actions(env, 10):
+      env.step(action)
+      currents.append(env.physics.motor_currents.copy())
+    assert np.abs(currents).max() > 0  # Measured, not the simulation's 0.
+  finally:
+    env.close()
+
+
+def test_torque_is_off_after_close():
+  env = suite.load('dclaw', 'turn_fixed', seed=0, device_path='virtual')
+  bus = env.virtual_bus
+  env.reset()
+  env.step(np.zeros(9))
+  assert any(_torque(bus).values())
+  env.close()
+  assert not any(_torque(bus).values())
+
+
+def test_nan_actions_never_reach_the_bus():
+  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  try:
+    env.reset()
+    env.step(np.zeros(9))
+    bus = env.virtual_bus
+    goals = bus.goal_positions()
+    packets = bus.stats['packets']
+    with pytest.raises(ValueError, match='non-finite'):
+      env.step(np.full(9, np.nan))
+    assert bus.goal_positions() == goals
+    assert bus.stats['packets'] == packets
+  finally:
+    env.close()
+
+
+def test_an_exception_inside_a_step_releases_the_motors(monkeypatch):
+  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  bus = env.virtual_bus
+  try:
+    env.reset()
+    env.step(np.zeros(9))
+
+    def fail():
+      raise RuntimeError('boom')
+
+    monkeypatch.setattr(env.robot, 'check_health', lambda force=False: fail())
+    with pytest.raises(RuntimeError, match='boom'):
+      env.step(np.zeros(9))
+    assert not any(_torque(bus).values())
+  finally:
+    env.close()
+
+
+def test_ctrl_c_during_a_step_releases_the_motors(monkeypatch):
+  env = suite.load('dclaw', 'turn_fixed', seed=0, device_path='virtual')
+  bus = env.virtual_bus
+  try:
+    env.reset()
+    clock = env.physics._clock  # noqa: SLF001
+
+    def interrupted(deadline):
+      raise KeyboardInterrupt
+
+    monkeypatch.setattr(clock, 'sleep_until', interrupted)
+    with pytest.raises(KeyboardInterrupt):
+      env.step(np.zeros(9))
+    assert not any(_torque(bus).values())
+  finally:
+    env.close()
+
+
+def test_overload_stops_the_episode_naming_the_motor():
+  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  bus = env.virtual_bus
+  try:
+    env.reset()
+    bus.servo(21).inject_hardware_error(0x20)  # Overload: torque cut.
+    with pytest.raises(dynamixel.MotorFaultError, match='motor 21: overload'):
+      for _ in range(20):  # Health is checked every few steps.
+        env.step(np.zeros(9))
+    assert not any(_torque(bus).values())
+  finally:
+    env.close()
+
+
+def test_a_motor_that_disappears_is_named_and_the_rest_released():
+  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  bus = env.virtual_bus
+  try:
+    env.reset()
+    bus.faults.set_absent(31)
+    with pytest.raises(dynamixel.MissingMotorError, match=r'\[31\]') as error:
+      env.step(np.zeros(9))
+    assert error.value.motor_ids == (31,)
+    torque = _torque(bus)
+    assert not any(v for motor_id, v in torque.items() if motor_id != 31)
+  finally:
+    env.close()
+
+
+def test_one_corrupted_or_lost_reply_is_retried_transparently():
+  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  bus = env.virtual_bus
+  try:
+    env.reset()
+    bus.faults.corrupt_next(12)
+    first = env.step(np.zeros(9))
+    bus.faults.mute_next(22)
+    second = env.step(np.zeros(9))
+    assert first.mid() and second.mid()
+  finally:
+    env.close()
+
+
+def test_persistent_corruption_raises_instead_of_returning_stale_data():
+  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  bus = env.virtual_bus
+  try:
+    env.reset()
+    bus.faults.corrupt_next(12, count=100)
+    with pytest.raises(dynamixel.DynamixelError):
+      env.step(np.zeros(9))
+    assert not any(_torque(bus).values())
+  finally:
+    env.close()
+
+
+def test_missing_motor_at_connect_is_named():
+  config = config_lib.default('dclaw')
+  servos = virtual_bus.make_servos(
+    [i for i in virtual_bus.robot_motor_ids(config) if i != 22]
+  )
+  with virtual_bus.PtyBusServer(virtual_bus.Bus(servos)) as server:
+    client = dynamixel.DynamixelClient(server.device_path, config.joint_ids)
+    with pytest.raises(dynamixel.MissingMotorError, match=r'\[22\]'):
+      client.connect()
+    assert not client.is_connected
+
+
+def test_missing_device_gives_a_clear_error():
+  with pytest.raises(dynamixel.DynamixelError, match='cannot open'):
+    suite.load('dclaw', 'pose_fixed', device_path='/dev/robel-dm-no-such-port')
+
+
+def test_dkitty_on_a_real_bus_needs_a_tracker():
+  with pytest.raises(ValueError, match='tracker'):
+    suite.load('dkitty', 'stand_fixed', device_path='/dev/ttyUSB0')
+
+
+def test_client_units_and_signs():
+  config = config_lib.default('dclaw')
+  servos = virtual_bus.make_servos(config.joint_ids, model_number=1020)
+  bus = virtual_bus.Bus(servos)
+  with (
+    virtual_bus.PtyBusServer(bus) as server,
+    dynamixel.DynamixelClient(server.device_path, config.joint_ids) as c,
+  ):
+    bus.servo(10).set_present(-1024, -10, -57)
+    state = c.read_state()
+    column = 0
+    assert state[2, column] == pytest.approx(-1024 * table.RADIANS_PER_TICK)
+    assert state[1, column] == pytest.approx(
+      -10 * table.RADIANS_PER_SECOND_PER_UNIT
+    )
+    assert state[0, column] == pytest.approx(-57 * 2.69)  # W-series unit.
+    c.set_torque(config.joint_ids, True)
+    c.write_goal_positions(np.full(9, 1.0))
+    c.ping(10)  # The sync write has no reply: wait until the bus handled it.
+    goal = bus.goal_positions()[10]
+    assert goal == round(1.0 / table.RADIANS_PER_TICK)
+    with pytest.raises(ValueError, match='non-finite'):
+      c.write_goal_positions(np.full(9, np.inf))
+
+
+def test_robot_configurations_load_and_reject_mistakes(tmp_path):
+  default = config_lib.default('dkitty')
+  assert default.joints[0].offset == pytest.approx(-1.5 * np.pi)
+  path = tmp_path / 'robot.json'
+  data = {
+    'robot': 'dclaw',
+    'joints': [{'name': 'FFJ10', 'id': 10}, {'name': 'FFJ11', 'id': 10}],
+  }
+  path.write_text(json.dumps(data))
+  with pytest.raises(config_lib.ConfigError, match='used twice: \\[10\\]'):
+    config_lib.load(path)
+  path.write_text('{"robot": "dclaw"}')
+  with pytest.raises(config_lib.ConfigError, match='missing "joints"'):
+    config_lib.load(path)
+  with pytest.raises(config_lib.ConfigError, match='not found'):
+    config_lib.load(tmp_path / 'missing.json')
+
+
+def test_unknown_device_configuration_mismatch_is_rejected(tmp_path):
+  path = tmp_path / 'kitty_as_claw.json'
+  kitty = config_lib.default('dkitty')
+  path.write_text(
+    json.dumps(
+      {
+        'robot': 'dkitty',
+        'joints': [{'name': m.name, 'id': m.id} for m in kitty.joints],
+      }
+    )
+  )
+  with pytest.raises(config_lib.ConfigError, match='do not match'):
+    hardware_env.make_environment(
+      suite.registry.DCLAW['pose_fixed'](),
+      domain='dclaw',
+      task_name='pose_fixed',
+      device_path='virtual',
+      robot_config=str(path),
+    )
