@@ -111,7 +111,8 @@ def bench_task(domain, task, steps, rounds, resets):
   if not env_times:
     raise RuntimeError(f'{domain}/{task}: every run ended early (fell)')
   env_step, raw_step = min(env_times), min(raw_times)
-  reset, bare_reset = min(reset_times), min(bare_reset_times)
+  reset = min(reset_times)
+  bare_reset = min(bare_reset_times) if unsettled is not env else reset
   return {
     'domain': domain,
     'task': task,
@@ -120,7 +121,7 @@ def bench_task(domain, task, steps, rounds, resets):
     'raw_step_us': raw_step * 1e6,
     'ratio': raw_step / env_step,
     'reset_ms': reset * 1e3,
-    'settle_ms': (reset - bare_reset) * 1e3 if unsettled is not env else 0.0,
+    'settle_ms': (reset - bare_reset) * 1e3,
     'reset_without_settling_ms': bare_reset * 1e3,
     'rounds_discarded': falls,
   }

@@ -37,6 +37,16 @@ _TASK_KWARGS = flags.DEFINE_string(
   'comma-separated key=value pairs (valve=valve4).',
 )
 _OUTPUT = flags.DEFINE_string('output', None, 'Write the results here (JSON).')
+_DEVICE_PATH = flags.DEFINE_string(
+  'device_path',
+  None,
+  'Run on a robot: its Dynamixel bus (e.g. /dev/ttyUSB0, or the path '
+  'printed by `python -m robel_dm.hardware.virtual_bus`), or "virtual" for '
+  'an in-process simulated bus. Default: simulation.',
+)
+_ROBOT_CONFIG = flags.DEFINE_string(
+  'robot_config', None, 'Robot configuration file (JSON) for --device_path.'
+)
 
 
 def parse_task_kwargs(text: str) -> dict[str, Any]:
@@ -79,6 +89,8 @@ def evaluate(
   seed: int | None = 0,
   task_kwargs: dict[str, Any] | None = None,
   log_every: int = 0,
+  device_path: str | None = None,
+  robot_config: str | None = None,
 ) -> dict[str, Any]:
   """Runs `episodes` episodes and returns the metrics.
 
@@ -90,6 +102,8 @@ def evaluate(
     seed: seed of the environment and the policy.
     task_kwargs: task arguments for `suite.load`.
     log_every: log progress every this many episodes (0: never).
+    device_path: run on a robot (see `suite.load`); None simulates.
+    robot_config: robot configuration file for `device_path`.
 
   Returns:
     A JSON-serializable dict of per-episode records and summary metrics.
@@ -99,7 +113,14 @@ def evaluate(
   """
   if episodes < 1:
     raise ValueError(f'episodes must be >= 1, got {episodes}')
-  env = suite.load(domain, task, seed=seed, task_kwargs=task_kwargs)
+  env = suite.load(
+    domain,
+    task,
+    seed=seed,
+    task_kwargs=task_kwargs,
+    device_path=device_path,
+    robot_config=robot_config,
+  )
   try:
     act = policies.make_policy(policy, env, seed)
     records = []
@@ -206,8 +227,10 @@ def main(argv):
       seed=_SEED.value,
       task_kwargs=task_kwargs,
       log_every=max(1, _EPISODES.value // 10),
+      device_path=_DEVICE_PATH.value,
+      robot_config=_ROBOT_CONFIG.value,
     )
-  except ValueError as error:
+  except (ValueError, RuntimeError) as error:
     print(f'error: {error}', file=sys.stderr)
     return 2
   print(format_table(results))

@@ -140,6 +140,7 @@ class DynamixelClient:
     self._state = np.zeros((3, len(ids)))  # current, velocity, position.
     self._state_reader = None
     self._goal_writer = None
+    self._register_readers = {}  # Address -> GroupSyncRead of all motors.
 
   # --- Connection ----------------------------------------------------------
 
@@ -245,6 +246,7 @@ class DynamixelClient:
 
   def _close_port(self) -> None:
     port, self._port = self._port, None
+    self._register_readers = {}
     with _OPEN_CLIENTS_LOCK:
       _OPEN_CLIENTS.discard(self)
     if port is not None:
@@ -480,9 +482,48 @@ class DynamixelClient:
         f'writing address {item.address} failed: {failed}', list(failed)
       )
 
+  def sync_read_register(self, item: table.Item) -> dict[int, int]:
+    """Reads one item of every motor in a single sync-read transaction.
+
+    Raises:
+      MissingMotorError: naming motors that do not answer.
+      DynamixelError: if the transaction keeps failing.
+    """
+    self._check_connected()
+    reader = self._register_readers.get(item.address)
+    if reader is None:
+      reader = sdk.GroupSyncRead(
+        self._port, self._packets, item.address, item.size
+      )
+      for motor_id in self._ids:
+        reader.addParam(motor_id)
+      self._register_readers[item.address] = reader
+    for _ in range(self._retries + 1):
+      result = self._call(lambda port: reader.txRxPacket())
+      if result == sdk.COMM_SUCCESS and all(
+        reader.isAvailable(i, item.address, item.size) for i in self._ids
+      ):
+        break
+    else:
+      silent = self._silent_motors(self._ids)
+      if silent:
+        raise MissingMotorError(f'motors {silent} stopped answering', silent)
+      raise DynamixelError(
+        f'reading address {item.address} failed: '
+        f'{self._packets.getTxRxResult(result)}',
+        self._ids,
+      )
+    values = {i: reader.getData(i, item.address, item.size) for i in self._ids}
+    if item.signed:
+      values = {i: table.to_signed(v, item.size) for i, v in values.items()}
+    return values
+
   def hardware_errors(self, motor_ids=None) -> dict[int, int]:
     """Hardware Error Status of the motors that have one (bits, see table)."""
-    values = self.read_register(table.HARDWARE_ERROR_STATUS, motor_ids)
+    if motor_ids is None:
+      values = self.sync_read_register(table.HARDWARE_ERROR_STATUS)
+    else:
+      values = self.read_register(table.HARDWARE_ERROR_STATUS, motor_ids)
     return {i: bits for i, bits in values.items() if bits}
 
   def raise_on_hardware_errors(self, motor_ids=None) -> None:

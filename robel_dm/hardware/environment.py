@@ -62,6 +62,7 @@ class HardwareEnvironment(environment_lib.Environment):
       control_timestep=task.control_timestep,
       torso_source=hardware.get('torso_source'),
       root_joint=hardware.get('root_joint'),
+      joint_limits=hardware.get('joint_limits'),
     )
 
   def _prepare_batching(self) -> None:
@@ -110,6 +111,7 @@ def make_environment(
   robot_config: config_lib.RobotConfig | str | None = None,
   task_kwargs=None,
   seed=None,
+  torso_source=None,
   **environment_kwargs,
 ) -> HardwareEnvironment:
   """Connects `task` to a robot.
@@ -123,6 +125,9 @@ def make_environment(
       for ROBEL's configuration of the domain.
     task_kwargs: the task's arguments (for the virtual bus's scene).
     seed: seed of the virtual bus's scene.
+    torso_source: for a free-floating robot (D'Kitty) on a real bus: a
+      callable returning the torso's (position, quaternion, linear
+      velocity, angular velocity in the torso frame).
     **environment_kwargs: forwarded to the environment.
 
   Returns:
@@ -154,7 +159,7 @@ def make_environment(
     auxiliary.append(motor)
   free_floating = task.root_joint is not None
   virtual = device_path == VIRTUAL_DEVICE
-  if free_floating and not virtual:
+  if free_floating and not virtual and torso_source is None:
     raise ValueError(
       f'{domain}/{task_name} needs the torso pose (upright, heading, '
       'position), which needs a motion tracker; tracker support comes with '
@@ -162,7 +167,6 @@ def make_environment(
     )
 
   on_close = []
-  torso_source = None
   if virtual:
     from robel_dm.hardware import sim_robot, virtual_bus  # noqa: PLC0415
 
@@ -201,6 +205,7 @@ def make_environment(
       'clock': clock,
       'torso_source': torso_source,
       'root_joint': task.root_joint,
+      'joint_limits': robot_config.limits,
       'on_close': on_close,
     }
     _install_sigterm_handler()

@@ -8,6 +8,7 @@ runs `mj_forward`. Every observable, reward and safety counter of the task
 then works unchanged, from measured state.
 """
 
+import contextlib
 import logging
 
 from dm_control import mjcf
@@ -45,6 +46,7 @@ class HardwarePhysics(mjcf.Physics):
     control_timestep: float,
     torso_source=None,
     root_joint=None,
+    joint_limits=None,
   ) -> None:
     """Connects the physics to the motors.
 
@@ -59,6 +61,8 @@ class HardwarePhysics(mjcf.Physics):
         velocity, angular velocity in the body frame) of a free-floating
         robot's root, or None.
       root_joint: the model's free joint that `torso_source` drives.
+      joint_limits: joint name -> (low, high) goal limits from the robot
+        configuration, narrowing the action range.
     """
     self._robot = robot
     self._clock = clock
@@ -72,7 +76,7 @@ class HardwarePhysics(mjcf.Physics):
     self._n_joints = len(joints)
     self._auxiliary_names = tuple(auxiliary_joints)
     ctrl_range = self.bind(list(actuators)).ctrlrange
-    robot.set_joint_limits(ctrl_range[:, 0], ctrl_range[:, 1])
+    robot.set_joint_limits(ctrl_range[:, 0], ctrl_range[:, 1], joint_limits)
     self.motor_currents = np.zeros(len(joints))  # mA, read by the task.
     self._torso_source = torso_source
     if torso_source is not None:
@@ -81,13 +85,27 @@ class HardwarePhysics(mjcf.Physics):
       self._root_dof = int(root.dofadr)
     self._next_tick = None
     self._last_overrun_log = -np.inf
+    self._resetting = False
 
   @property
   def robot(self) -> robot_lib.HardwareRobot:
     return self._robot
 
+  @contextlib.contextmanager
+  def reset_context(self):
+    # While the task sets up an episode, simulated settling steps must not
+    # reach the motors: `realize_initial_state` moves them.
+    self._resetting = True
+    try:
+      with super().reset_context():
+        yield self
+    finally:
+      self._resetting = False
+
   def step(self, nstep: int = 1) -> None:
     """Exchanges with the motors once per control step (its last substep)."""
+    if self._resetting:
+      return
     self._pending_substeps += nstep
     if self._pending_substeps < self._substeps:
       return

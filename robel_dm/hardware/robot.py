@@ -78,9 +78,25 @@ class HardwareRobot:
   def auxiliary(self) -> tuple[config_lib.Motor, ...]:
     return self._auxiliary
 
-  def set_joint_limits(self, low, high) -> None:
-    """Goal limits of the actuated joints, rad."""
-    self._limits = (np.asarray(low, float), np.asarray(high, float))
+  def set_joint_limits(self, low, high, configured=None) -> None:
+    """Goal limits of the actuated joints, rad.
+
+    Args:
+      low: lower limits (the model's action range).
+      high: upper limits.
+      configured: joint name -> (low, high) from the robot configuration;
+        they narrow the limits further.
+    """
+    low, high = np.array(low, float), np.array(high, float)
+    for i, motor in enumerate(self._joints):
+      if configured and motor.name in configured:
+        low[i] = max(low[i], configured[motor.name][0])
+        high[i] = min(high[i], configured[motor.name][1])
+    if np.any(low > high):
+      raise ValueError(
+        f'configured joint limits outside the action range: {configured}'
+      )
+    self._limits = (low, high)
 
   def read(self) -> None:
     """Reads every motor into `positions`, `velocities`, `currents`.
@@ -154,7 +170,7 @@ class HardwareRobot:
       return
     self._steps_since_check = 0
     self._client.raise_on_hardware_errors()
-    temperatures = self._client.read_register(table.PRESENT_TEMPERATURE)
+    temperatures = self._client.sync_read_register(table.PRESENT_TEMPERATURE)
     hot = {
       i: t for i, t in temperatures.items() if t > self._health.max_temperature
     }

@@ -1420,8 +1420,26 @@ class PtyBusServer:
 
 # --driver values: factories of a driver for a robot configuration.
 DriverFactory = Callable[[config.RobotConfig], Driver]
+# The scene a standalone simulated robot runs: one with every motor's joint
+# (the D'Claw's includes the valve that motor 50 reads).
+_SIMULATED_SCENES = {'dclaw': 'turn_fixed', 'dkitty': 'stand_fixed'}
+
+
+def _simulated_robot(robot_config: config.RobotConfig) -> Driver:
+  from robel_dm.hardware import sim_robot  # noqa: PLC0415 (needs MuJoCo)
+
+  return sim_robot.SimulatedRobot(
+    robot_config.robot,
+    _SIMULATED_SCENES[robot_config.robot],
+    robot_config,
+    realtime=True,
+  )
+
+
 DRIVERS: dict[str, DriverFactory] = {
   'ideal': lambda robot_config: IdealDriver(),
+  # A MuJoCo simulation of the robot, advancing with the wall clock.
+  'sim': _simulated_robot,
 }
 
 
@@ -1462,7 +1480,11 @@ def _define_flags():
       'config', None, 'Robot configuration file (JSON); overrides --robot.'
     ),
     'driver': flags.DEFINE_enum(
-      'driver', 'ideal', sorted(DRIVERS), 'What moves the motors.'
+      'driver',
+      'sim',
+      sorted(DRIVERS),
+      'What moves the motors: sim (a MuJoCo simulation of the robot, in real '
+      'time) or ideal (every motor at its goal at once).',
     ),
     'model_number': flags.DEFINE_integer(
       'model_number', DEFAULT_MODEL_NUMBER, 'Model number of every servo.'
