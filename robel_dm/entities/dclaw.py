@@ -5,7 +5,7 @@ from dm_control.composer.observation import observable
 import numpy as np
 
 from robel_dm import assets
-from robel_dm.entities import limits
+from robel_dm.entities import limits, servo_robot
 
 # Joints in action order; motor IDs are the digits (robel_facts 3.2, 4.1).
 JOINT_NAMES = (
@@ -38,16 +38,12 @@ class DClaw(composer.Robot):
     Args:
       name: model name; it prefixes element names and observable keys.
     """
-    self._mjcf_root = mjcf.from_path(str(assets.xml_path('dclaw', 'dclaw.xml')))
-    self._mjcf_root.model = name
-    self._joints = tuple(
-      self._mjcf_root.find('joint', joint) for joint in JOINT_NAMES
-    )
-    self._actuators = tuple(
-      self._mjcf_root.find('actuator', joint) for joint in JOINT_NAMES
-    )
-    self._fingertip_sites = tuple(
-      self._mjcf_root.find('site', site) for site in FINGERTIP_SITE_NAMES
+    root = servo_robot.load_model(assets.xml_path('dclaw', 'dclaw.xml'), name)
+    self._mjcf_root = root
+    self._joints = servo_robot.find_all(root, 'joint', JOINT_NAMES)
+    self._actuators = servo_robot.find_all(root, 'actuator', JOINT_NAMES)
+    self._fingertip_sites = servo_robot.find_all(
+      root, 'site', FINGERTIP_SITE_NAMES
     )
 
   def _build_observables(self) -> 'DClawObservables':
@@ -80,16 +76,8 @@ class DClaw(composer.Robot):
     return SAFETY_LIMITS
 
 
-class DClawObservables(composer.Observables):
-  """Joint-space observables of the D'Claw (disabled until a task enables)."""
-
-  @composer.observable
-  def joints_pos(self):
-    return observable.MJCFFeature('qpos', self._entity.joints)
-
-  @composer.observable
-  def joints_vel(self):
-    return observable.MJCFFeature('qvel', self._entity.joints)
+class DClawObservables(servo_robot.JointObservables):
+  """Joint and fingertip observables (disabled until a task enables them)."""
 
   @composer.observable
   def fingertips_pos(self):

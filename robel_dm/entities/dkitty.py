@@ -5,7 +5,7 @@ from dm_control.composer.observation import observable
 import numpy as np
 
 from robel_dm import assets
-from robel_dm.entities import limits
+from robel_dm.entities import limits, servo_robot
 
 # Joints in action order; motor IDs are the digits (robel_facts 3.4, 4.1).
 # Legs: front right, front left, back left, back right; the robot faces +y.
@@ -50,18 +50,12 @@ class DKitty(composer.Robot):
       name: model name; it prefixes element names and observable keys.
     """
     path = assets.xml_path('dkitty', 'dkitty.xml')
-    self._mjcf_root = mjcf.from_path(str(path))
-    self._mjcf_root.model = name
-    self._torso = self._mjcf_root.find('body', 'torso')
-    self._joints = tuple(
-      self._mjcf_root.find('joint', joint) for joint in JOINT_NAMES
-    )
-    self._actuators = tuple(
-      self._mjcf_root.find('actuator', joint) for joint in JOINT_NAMES
-    )
-    self._foot_sites = tuple(
-      self._mjcf_root.find('site', site) for site in FOOT_SITE_NAMES
-    )
+    root = servo_robot.load_model(path, name)
+    self._mjcf_root = root
+    (self._torso,) = servo_robot.find_all(root, 'body', ('torso',))
+    self._joints = servo_robot.find_all(root, 'joint', JOINT_NAMES)
+    self._actuators = servo_robot.find_all(root, 'actuator', JOINT_NAMES)
+    self._foot_sites = servo_robot.find_all(root, 'site', FOOT_SITE_NAMES)
 
   def _build_observables(self) -> 'DKittyObservables':
     return DKittyObservables(self)
@@ -101,16 +95,8 @@ class DKitty(composer.Robot):
     return SAFETY_LIMITS
 
 
-class DKittyObservables(composer.Observables):
-  """Joint and torso observables of the D'Kitty (disabled until enabled)."""
-
-  @composer.observable
-  def joints_pos(self):
-    return observable.MJCFFeature('qpos', self._entity.joints)
-
-  @composer.observable
-  def joints_vel(self):
-    return observable.MJCFFeature('qvel', self._entity.joints)
+class DKittyObservables(servo_robot.JointObservables):
+  """Joint, torso and foot observables (disabled until a task enables them)."""
 
   @composer.observable
   def torso_pos(self):
