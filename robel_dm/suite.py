@@ -63,6 +63,7 @@ def load(
   environment_kwargs: dict[str, Any] | None = None,
   device_path: str | None = None,
   robot_config=None,
+  reset: str | None = None,
 ) -> Environment:
   """Builds a task's environment.
 
@@ -80,6 +81,8 @@ def load(
       driven by a simulation. None (default) simulates.
     robot_config: with `device_path`: a `RobotConfig` or the path of a JSON
       robot configuration; ROBEL's configuration of the domain by default.
+    reset: with `device_path`: 'scripted', 'move' or 'manual' (see
+      `robel_dm.hardware.resets`); the robot's default if None.
 
   Returns:
     A `dm_env.Environment` (a `composer.Environment`).
@@ -103,8 +106,8 @@ def load(
   # 3.9999...): without this margin a 4 s limit would run 41 steps.
   time_limit -= _TIME_LIMIT_MARGIN
   if device_path is None:
-    if robot_config is not None:
-      raise ValueError('robot_config needs a device_path')
+    if robot_config is not None or reset is not None:
+      raise ValueError('robot_config and reset need a device_path')
     return Environment(
       task_instance,
       time_limit=time_limit,
@@ -122,6 +125,7 @@ def load(
     robot_config=robot_config,
     task_kwargs=task_kwargs,
     seed=seed,
+    reset=reset,
     time_limit=time_limit,
     random_state=seed,
     **(environment_kwargs or {}),

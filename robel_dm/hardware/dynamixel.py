@@ -141,6 +141,7 @@ class DynamixelClient:
     self._state_reader = None
     self._goal_writer = None
     self._register_readers = {}  # Address -> GroupSyncRead of all motors.
+    self._probing = False  # Connected without checking the motors.
 
   # --- Connection ----------------------------------------------------------
 
@@ -157,8 +158,16 @@ class DynamixelClient:
     """Model number of each motor (after `connect`)."""
     return dict(self._models)
 
-  def connect(self) -> None:
+  def connect(self, check_motors: bool = True) -> None:
     """Opens the port and checks that every motor answers.
+
+    Args:
+      check_motors: whether to ping every motor and require a supported
+        model (the default). False only opens the port, for tools that probe
+        the bus (`broadcast_ping`, `ping`, `read_bytes`, `read_register`,
+        `write_register`, `set_torque`): `read_state` and
+        `write_goal_positions` are unavailable then, and `disconnect` leaves
+        every motor's torque as it is.
 
     Raises:
       DynamixelError: if the port cannot be opened or set up.
@@ -180,8 +189,11 @@ class DynamixelClient:
       )
     self._port = port
     self._packets = sdk.PacketHandler(table.PROTOCOL_VERSION)
+    self._probing = not check_motors
     with _OPEN_CLIENTS_LOCK:
       _OPEN_CLIENTS.add(self)
+    if self._probing:
+      return
     try:
       missing = []
       for motor_id in self._ids:
@@ -225,8 +237,14 @@ class DynamixelClient:
       raise
 
   def disconnect(self) -> None:
-    """Turns every motor's torque off (best effort) and closes the port."""
+    """Turns every motor's torque off (best effort) and closes the port.
+
+    After `connect(check_motors=False)` the torque is left as it is.
+    """
     if self._port is None:
+      return
+    if self._probing:
+      self._close_port()
       return
     try:
       for motor_id in self._ids:
@@ -247,6 +265,7 @@ class DynamixelClient:
   def _close_port(self) -> None:
     port, self._port = self._port, None
     self._register_readers = {}
+    self._state_reader = self._goal_writer = None
     with _OPEN_CLIENTS_LOCK:
       _OPEN_CLIENTS.discard(self)
     if port is not None:
@@ -265,6 +284,14 @@ class DynamixelClient:
   def _check_connected(self) -> None:
     if self._port is None:
       raise DynamixelError(f'not connected to {self._device_path}')
+
+  def _check_motors_checked(self) -> None:
+    self._check_connected()
+    if self._state_reader is None:
+      raise DynamixelError(
+        f'connected to {self._device_path} without checking the motors: '
+        'use connect() for reads and writes of all motors'
+      )
 
   def _call(self, function, *args):
     """Runs one SDK transaction; clears the SDK's port lock around it.
@@ -297,6 +324,32 @@ class DynamixelClient:
         return model
     return None
 
+  def broadcast_ping(self) -> dict[int, tuple[int, int]]:
+    """Pings every ID at once (Broadcast Ping; takes ~0.8 s whatever answers).
+
+    Returns:
+      Motor ID -> (model number, firmware version) of the motors that
+      answered. A garbled reply loses the motors after it: ping the motors
+      that must be there one by one to be sure.
+
+    Raises:
+      DynamixelError: if the ping cannot be sent.
+    """
+    self._check_connected()
+    found, result = self._call(self._packets.broadcastPing)
+    if result not in (
+      sdk.COMM_SUCCESS,
+      sdk.COMM_RX_TIMEOUT,
+      sdk.COMM_RX_CORRUPT,
+    ):
+      raise DynamixelError(
+        f'broadcast ping failed: {self._packets.getTxRxResult(result)}'
+      )
+    return {
+      motor_id: (model, firmware)
+      for motor_id, (model, firmware) in sorted(found.items())
+    }
+
   def _silent_motors(self, motor_ids) -> list[int]:
     return [i for i in motor_ids if self._ping(i) is None]
 
@@ -311,7 +364,7 @@ class DynamixelClient:
       MissingMotorError: if motors stop answering (named).
       DynamixelError: if the transaction keeps failing.
     """
-    self._check_connected()
+    self._check_motors_checked()
     reader = self._state_reader
     result = None
     for _ in range(self._retries + 1):
@@ -356,7 +409,7 @@ class DynamixelClient:
         non-finite values; nothing is sent then.
       DynamixelError: if the packet cannot be sent.
     """
-    self._check_connected()
+    self._check_motors_checked()
     ids = self._ids if motor_ids is None else tuple(motor_ids)
     unknown = set(ids) - set(self._ids)
     if unknown:
@@ -451,6 +504,33 @@ class DynamixelClient:
         silent,
       )
     return values
+
+  def read_bytes(self, motor_id: int, address: int, length: int) -> bytes:
+    """Reads `length` raw bytes of a motor's control table from `address`.
+
+    Raises:
+      MissingMotorError: if the motor does not answer.
+      DynamixelError: if it refuses the read (e.g. an Access error).
+    """
+    self._check_connected()
+    for _ in range(self._retries + 1):
+      data, result, error = self._call(
+        self._packets.readTxRx, motor_id, address, length
+      )
+      if result != sdk.COMM_SUCCESS:
+        continue
+      if error & ~table.ALERT_BIT:
+        raise DynamixelError(
+          f'motor {motor_id} refused reading {length} bytes at address '
+          f'{address}: {self._packets.getRxPacketError(error)}',
+          [motor_id],
+        )
+      if len(data) == length:
+        return bytes(data)
+    raise MissingMotorError(
+      f'motor {motor_id} did not answer reading address {address}',
+      [motor_id],
+    )
 
   def write_register(self, item: table.Item, values: dict[int, int]) -> None:
     """Writes one control-table item of several motors (individual writes).

@@ -19,7 +19,7 @@ from dm_control import composer
 from robel_dm import environment as environment_lib
 from robel_dm.hardware import clock as clock_lib
 from robel_dm.hardware import config as config_lib
-from robel_dm.hardware import dynamixel
+from robel_dm.hardware import dynamixel, resets
 from robel_dm.hardware import physics as physics_lib
 from robel_dm.hardware import robot as robot_lib
 
@@ -63,6 +63,7 @@ class HardwareEnvironment(environment_lib.Environment):
       torso_source=hardware.get('torso_source'),
       root_joint=hardware.get('root_joint'),
       joint_limits=hardware.get('joint_limits'),
+      reset=hardware.get('reset'),
     )
 
   def _prepare_batching(self) -> None:
@@ -112,6 +113,7 @@ def make_environment(
   task_kwargs=None,
   seed=None,
   torso_source=None,
+  reset: str | None = None,
   **environment_kwargs,
 ) -> HardwareEnvironment:
   """Connects `task` to a robot.
@@ -128,6 +130,10 @@ def make_environment(
     torso_source: for a free-floating robot (D'Kitty) on a real bus: a
       callable returning the torso's (position, quaternion, linear
       velocity, angular velocity in the torso frame).
+    reset: 'scripted' (ROBEL's scripted reset; the default of the D'Claw's
+      valve tasks), 'move' (one blocking move; the default otherwise, until
+      the D'Kitty's stand-up sequence exists), 'manual' (a person places the
+      robot), or a procedure (see `resets`).
     **environment_kwargs: forwarded to the environment.
 
   Returns:
@@ -166,6 +172,11 @@ def make_environment(
       "hardware part 2. Use device_path='virtual' to run on the simulated bus."
     )
 
+  if reset is None:
+    # ROBEL scripts the reset of the D'Claw's object tasks only.
+    reset = 'scripted' if domain == 'dclaw' and auxiliary_joints else 'move'
+
+  reset_procedure = resets.make(reset, robot_config, domain)
   on_close = []
   if virtual:
     from robel_dm.hardware import sim_robot, virtual_bus  # noqa: PLC0415
@@ -206,6 +217,7 @@ def make_environment(
       'torso_source': torso_source,
       'root_joint': task.root_joint,
       'joint_limits': robot_config.limits,
+      'reset': reset_procedure,
       'on_close': on_close,
     }
     _install_sigterm_handler()

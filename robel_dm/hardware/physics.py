@@ -16,18 +16,9 @@ import mujoco
 import numpy as np
 
 from robel_dm.hardware import clock as clock_lib
+from robel_dm.hardware import resets
 from robel_dm.hardware import robot as robot_lib
 
-# Reset moves (robel_facts 4.3, 4.4): the move ends when every joint is
-# within the tolerance, when no joint moved more than the stall tolerance for
-# two polls, or at the timeout; a joint still off by more than the warning
-# tolerance (ROBEL's "good reset", 5 degrees) is reported.
-_RESET_TOLERANCE = np.deg2rad(1.0)  # rad
-_RESET_STALL_TOLERANCE = np.deg2rad(1.0)  # rad per poll
-_RESET_STALL_POLLS = 2
-_RESET_WARNING_TOLERANCE = np.deg2rad(5.0)  # rad
-_RESET_POLL_INTERVAL = 0.25  # s
-_RESET_TIMEOUT = 3.0  # s
 # A control step later than this past its tick is logged, s.
 _OVERRUN_TOLERANCE = 0.005
 _OVERRUN_LOG_INTERVAL = 1.0  # s
@@ -47,6 +38,7 @@ class HardwarePhysics(mjcf.Physics):
     torso_source=None,
     root_joint=None,
     joint_limits=None,
+    reset=None,
   ) -> None:
     """Connects the physics to the motors.
 
@@ -63,9 +55,11 @@ class HardwarePhysics(mjcf.Physics):
       root_joint: the model's free joint that `torso_source` drives.
       joint_limits: joint name -> (low, high) goal limits from the robot
         configuration, narrowing the action range.
+      reset: the reset procedure (see `resets`); a blocking move if None.
     """
     self._robot = robot
     self._clock = clock
+    self._reset = reset or resets.MoveReset()
     self._period = control_timestep
     self._substeps = max(1, round(control_timestep / self.model.opt.timestep))
     self._pending_substeps = 0
@@ -123,45 +117,21 @@ class HardwarePhysics(mjcf.Physics):
     mujoco.mj_forward(self.model.ptr, self.data.ptr)
 
   def realize_initial_state(self) -> None:
-    """Drives the motors to the joint state the task set, then reads back.
+    """Brings the motors to the joint state the task set, then reads back.
 
-    A bounded blocking move (ROBEL: tolerance 1 degree, timeout 3 s).
-    Auxiliary motors (the valve) are driven to their initial angle and then
-    released for the episode.
+    Runs the reset procedure (see `resets`); auxiliary motors (the valve)
+    are driven to their initial angle and then released for the episode.
     """
     try:
       desired = self.data.qpos[self._qpos_index].copy()
       robot = self._robot
-      robot.set_torque(True)
-      deadline = self._clock.now() + _RESET_TIMEOUT
-      robot.read()
-      previous, stalled = robot.positions.copy(), 0
-      while True:
-        robot.write_joint_goals(desired[: self._n_joints])
-        for name in self._auxiliary_names:
-          index = robot.auxiliary_index(name)
-          robot.write_auxiliary_goal(name, desired[index])
-        self._clock.sleep_until(self._clock.now() + _RESET_POLL_INTERVAL)
-        robot.read()
-        error = np.abs(robot.positions - desired)
-        moved = np.abs(robot.positions - previous).max()
-        previous[:] = robot.positions
-        stalled = stalled + 1 if moved < _RESET_STALL_TOLERANCE else 0
-        if (
-          error.max() <= _RESET_TOLERANCE
-          or stalled >= _RESET_STALL_POLLS
-          or self._clock.now() >= deadline
-        ):
-          break
-      off = error > _RESET_WARNING_TOLERANCE
-      if off.any():
-        logging.warning(
-          'reset: motors %s stopped %s rad from the initial pose',
-          np.asarray(robot.motor_ids)[off].tolist(),
-          np.round(error[off], 3).tolist(),
-        )
-      if robot.auxiliary:
-        robot.set_torque(False, [motor.id for motor in robot.auxiliary])
+      auxiliary_goals = {
+        name: desired[robot.auxiliary_index(name)]
+        for name in self._auxiliary_names
+      }
+      self._reset(
+        robot, self._clock, desired[: self._n_joints], auxiliary_goals
+      )
       robot.check_health(force=True)
       self._read_motors()
     except BaseException:

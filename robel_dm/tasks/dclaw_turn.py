@@ -105,6 +105,7 @@ class TurnTask(base.RobelTask):
     self._success_threshold = success_threshold
     self._success_on_mean = success_on == SUCCESS_ON_MEAN_ERROR
     self._goal_start = 0.0
+    self._episode_initial_angle = 0.0
     self._velocity = 0.0
     self._goal = 0.0
     super().__init__(
@@ -141,6 +142,11 @@ class TurnTask(base.RobelTask):
     return {'valve': self._valve.hinge}
 
   @property
+  def initial_angle(self) -> float:
+    """The valve angle this episode started from (as drawn), rad."""
+    return self._episode_initial_angle
+
+  @property
   def goal(self) -> float:
     """The current goal angle, rad (unwrapped when the goal moves)."""
     return self._goal
@@ -165,6 +171,7 @@ class TurnTask(base.RobelTask):
     physics.bind(self.robot.joints).qpos = dclaw.RESET_POSE
     physics.bind(self.robot.actuators).ctrl = dclaw.RESET_POSE
     physics.bind(self._valve.hinge).qpos = initial
+    self._episode_initial_angle = initial
     self._goal = self._goal_start
     self._show_goal()
 

@@ -1,0 +1,92 @@
+"""Hardware resets on the virtual bus (robel_dm.hardware.resets)."""
+
+import numpy as np
+import pytest
+
+from robel_dm import suite
+from robel_dm.hardware import control_table as table
+from robel_dm.hardware import resets, sim_robot
+
+
+def _torque(bus):
+  return {servo.motor_id: servo.torque_enabled for servo in bus.servos}
+
+
+def test_scripted_claw_reset_turns_the_valve_and_releases_it():
+  env = suite.load('dclaw', 'turn_random', seed=3, device_path='virtual')
+  try:
+    for _ in range(3):
+      env.reset()
+      valve = env.task.valve.hinge
+      # The task drew an initial valve angle; the valve motor drove the
+      # valve there and then let go.
+      drawn = env.task.initial_angle
+      angle = float(env.physics.bind(valve).qpos[0])
+      error = (angle - drawn + np.pi) % (2 * np.pi) - np.pi
+      assert abs(error) < np.deg2rad(5)
+      torque = _torque(env.virtual_bus)
+      assert not torque[50]
+      assert all(torque[i] for i in env.robot.joint_ids)
+      joints = env.physics.bind(env.task.robot.joints).qpos
+      goal = env.physics.bind(env.task.robot.actuators).ctrl
+      assert np.abs(joints - goal).max() < np.deg2rad(5)
+  finally:
+    env.close()
+
+
+def test_stuck_finger_retries_disentangles_then_fails_naming_it(monkeypatch):
+  torque_seen = []
+  original = sim_robot.SimulatedRobot.on_write
+
+  def stuck_motor_21(self, servos, ids):
+    # Motor 21 (a middle joint) is stuck at joint angle 0 (motor angle pi,
+    # 2048 ticks) whatever it is told; the reset pose wants -pi/3.
+    torque_seen.append(servos[21].torque_enabled)
+    servos[21].set(table.GOAL_POSITION, 2048)
+    original(self, servos, ids)
+
+  monkeypatch.setattr(sim_robot.SimulatedRobot, 'on_write', stuck_motor_21)
+  env = suite.load('dclaw', 'turn_fixed', seed=0, device_path='virtual')
+  try:
+    with pytest.raises(resets.ResetError, match=r'\[21\]') as error:
+      env.reset()
+    assert error.value.motor_ids == (21,)
+    assert not any(_torque(env.virtual_bus).values())  # Released.
+    # Between tries the disentangling sequence switched the claw off and on.
+    assert False in torque_seen and True in torque_seen
+  finally:
+    env.close()
+
+
+def test_manual_reset_releases_the_motors_while_the_person_works():
+  seen = []
+
+  class Person:
+    env = None
+
+    def __call__(self, message):
+      seen.append((message, dict(_torque(self.env.virtual_bus))))
+
+  person = Person()
+  procedure = resets.ManualReset(wait=person)
+  env = suite.load(
+    'dclaw', 'pose_fixed', seed=0, device_path='virtual', reset=procedure
+  )
+  person.env = env
+  try:
+    env.reset()
+    ((message, torque),) = seen
+    assert 'press Enter' in message
+    assert not any(torque.values())
+    assert all(_torque(env.virtual_bus)[i] for i in env.robot.joint_ids)
+  finally:
+    env.close()
+
+
+def test_reset_choices_are_checked():
+  with pytest.raises(ValueError, match="unknown reset 'bounce'"):
+    suite.load('dclaw', 'pose_fixed', device_path='virtual', reset='bounce')
+  with pytest.raises(ValueError, match='scripted dkitty reset'):
+    suite.load('dkitty', 'stand_fixed', device_path='virtual', reset='scripted')
+  with pytest.raises(ValueError, match='need a device_path'):
+    suite.load('dclaw', 'pose_fixed', reset='move')
