@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from robel_dm import suite
+from robel_dm.hardware import config as config_lib
 from robel_dm.hardware import control_table as table
 from robel_dm.hardware import resets, sim_robot
 
@@ -90,3 +91,53 @@ def test_reset_choices_are_checked():
     suite.load('dkitty', 'stand_fixed', device_path='virtual', reset='scripted')
   with pytest.raises(ValueError, match='need a device_path'):
     suite.load('dclaw', 'pose_fixed', reset='move')
+
+
+def _guide_ticks(angle):
+  guide = config_lib.default('dclaw').auxiliary_motor('guide')
+  return round(guide.to_motor(angle) / table.RADIANS_PER_TICK)
+
+
+def test_guide_motor_shows_the_moving_goal():
+  env = suite.load(
+    'dclaw', 'screw_fixed', seed=0, device_path='virtual',
+    task_kwargs={'use_guide': True},
+  )  # fmt: skip
+  try:
+    env.reset()
+    bus = env.virtual_bus
+    assert bus.servo(60).torque_enabled  # Held to show the goal.
+    for _ in range(5):
+      # Each step sends the goal the agent saw with its action.
+      shown = (env.task.goal + np.pi) % (2 * np.pi) - np.pi
+      env.step(np.zeros(9))
+      env.robot.client.ping(60)  # The goal write has no reply: sync.
+      assert bus.goal_positions()[60] == _guide_ticks(shown)
+    assert env.task.goal > 0.2  # Screw's goal moved at 0.5 rad/s.
+  finally:
+    env.close()
+
+
+def test_interactive_mode_takes_the_goal_from_the_guide():
+  env = suite.load(
+    'dclaw', 'turn_fixed', seed=0, device_path='virtual',
+    task_kwargs={'interactive': True},
+  )  # fmt: skip
+  try:
+    env.reset()
+    bus = env.virtual_bus
+    assert not bus.servo(60).torque_enabled  # Released for the person.
+    bus.servo(60).set_present(_guide_ticks(1.0))  # A person turns it.
+    timestep = env.step(np.zeros(9))
+    assert env.task.goal == pytest.approx(1.0, abs=2e-3)
+    valve = float(env.physics.bind(env.task.valve.hinge).qpos[0])
+    assert timestep.observation['target_error'][0] == pytest.approx(
+      1.0 - valve, abs=2e-3
+    )
+  finally:
+    env.close()
+
+
+def test_guide_options_need_a_robot():
+  with pytest.raises(ValueError, match='guide motor'):
+    suite.load('dclaw', 'turn_fixed', task_kwargs={'interactive': True})

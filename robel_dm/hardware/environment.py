@@ -153,7 +153,12 @@ def make_environment(
     raise config_lib.ConfigError(
       f'{robot_config.source}: its joints do not match the {domain} model'
     )
-  auxiliary_joints = task.hardware_auxiliary_joints()
+  # Motors measuring a model joint first: their readings map onto qpos.
+  auxiliary_joints = dict(
+    sorted(
+      task.hardware_auxiliary_joints().items(), key=lambda item: item[1] is None
+    )
+  )
   auxiliary = []
   for name in auxiliary_joints:
     motor = robot_config.auxiliary_motor(name)

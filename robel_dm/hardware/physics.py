@@ -63,12 +63,21 @@ class HardwarePhysics(mjcf.Physics):
     self._period = control_timestep
     self._substeps = max(1, round(control_timestep / self.model.opt.timestep))
     self._pending_substeps = 0
-    bound = self.bind(list(joints) + list(auxiliary_joints.values()))
+    # Auxiliary motors with a model joint (the valve) write qpos/qvel like
+    # the robot's joints; the others (the guide) are exposed as
+    # `auxiliary_angles` and take goals from `auxiliary_goals`.
+    modelled = {n: j for n, j in auxiliary_joints.items() if j is not None}
+    self._free_auxiliaries = tuple(
+      n for n, j in auxiliary_joints.items() if j is None
+    )
+    bound = self.bind(list(joints) + list(modelled.values()))
     self._qpos_index = np.asarray(bound.qposadr, int)
     self._qvel_index = np.asarray(bound.dofadr, int)
+    self.auxiliary_angles: dict[str, float] = {}  # rad, read every step.
+    self.auxiliary_goals: dict[str, float] = {}  # rad, sent every step.
     self._ctrl_index = np.asarray(self.bind(list(actuators)).element_id, int)
     self._n_joints = len(joints)
-    self._auxiliary_names = tuple(auxiliary_joints)
+    self._auxiliary_names = tuple(modelled)
     ctrl_range = self.bind(list(actuators)).ctrlrange
     robot.set_joint_limits(ctrl_range[:, 0], ctrl_range[:, 1], joint_limits)
     self.motor_currents = np.zeros(len(joints))  # mA, read by the task.
@@ -106,6 +115,8 @@ class HardwarePhysics(mjcf.Physics):
     self._pending_substeps = 0
     try:
       self._robot.write_joint_goals(self.data.ctrl[self._ctrl_index])
+      for name, goal in self.auxiliary_goals.items():
+        self._robot.write_auxiliary_goal(name, goal)
       self._wait_for_tick()
       self._read_motors()
       self._robot.check_health()
@@ -123,15 +134,23 @@ class HardwarePhysics(mjcf.Physics):
     are driven to their initial angle and then released for the episode.
     """
     try:
-      desired = self.data.qpos[self._qpos_index].copy()
+      desired = np.array(self._robot.positions)
+      desired[: len(self._qpos_index)] = self.data.qpos[self._qpos_index]
       robot = self._robot
       auxiliary_goals = {
         name: desired[robot.auxiliary_index(name)]
         for name in self._auxiliary_names
       }
+      # E.g. the guide motor showing the goal (set by the task).
+      auxiliary_goals.update(self.auxiliary_goals)
       self._reset(
         robot, self._clock, desired[: self._n_joints], auxiliary_goals
       )
+      # Resets release the auxiliary motors; those still commanded (a guide
+      # showing the goal) are held.
+      held = [robot.auxiliary_id(name) for name in self.auxiliary_goals]
+      if held:
+        robot.set_torque(True, held)
       robot.check_health(force=True)
       self._read_motors()
     except BaseException:
@@ -160,8 +179,13 @@ class HardwarePhysics(mjcf.Physics):
   def _read_motors(self) -> None:
     robot = self._robot
     robot.read()
-    self.data.qpos[self._qpos_index] = robot.positions
-    self.data.qvel[self._qvel_index] = robot.velocities
+    modelled = len(self._qpos_index)
+    self.data.qpos[self._qpos_index] = robot.positions[:modelled]
+    self.data.qvel[self._qvel_index] = robot.velocities[:modelled]
+    for name in self._free_auxiliaries:
+      self.auxiliary_angles[name] = float(
+        robot.positions[robot.auxiliary_index(name)]
+      )
     self.motor_currents[:] = robot.currents[: self._n_joints]
     if self._torso_source is not None:
       position, quaternion, velocity, angular_velocity = self._torso_source()

@@ -144,6 +144,9 @@ class HardwareRobot:
     motor = self._find_auxiliary(name)
     self._client.write_goal_positions([motor.to_motor(joint_angle)], [motor.id])
 
+  def auxiliary_id(self, name: str) -> int:
+    return self._find_auxiliary(name).id
+
   def auxiliary_index(self, name: str) -> int:
     """Index of an auxiliary motor in `positions` and friends."""
     motor = self._find_auxiliary(name)

@@ -18,6 +18,7 @@ import mujoco
 from robel_dm import suite
 from robel_dm.hardware import config as config_lib
 from robel_dm.hardware import control_table as table
+from robel_dm.tasks import base
 
 # Position gain (N m/rad) and damping (N m s/rad) of an auxiliary motor
 # holding a goal (the valve during resets); it has no actuator in the model.
@@ -52,8 +53,13 @@ class SimulatedRobot:
         of only when `advance` is called.
     """
     self._config = robot_config or config_lib.default(domain)
+    scene_kwargs = {
+      key: value
+      for key, value in (task_kwargs or {}).items()
+      if key not in base.HARDWARE_ONLY_ARGUMENTS
+    }
     self._env = suite.load(
-      domain, task, seed=seed, task_kwargs=task_kwargs, time_limit=math.inf
+      domain, task, seed=seed, task_kwargs=scene_kwargs, time_limit=math.inf
     )
     self._env.reset()
     physics = self._env.physics
@@ -82,7 +88,7 @@ class SimulatedRobot:
       )
     for name, joint in auxiliary_joints.items():
       motor = self._config.auxiliary_motor(name)
-      if motor is not None:
+      if motor is not None and joint is not None:
         element = physics.bind(joint)
         self._motors[motor.id] = (
           motor,
@@ -113,6 +119,10 @@ class SimulatedRobot:
     with self._lock:
       for motor_id in ids:
         if motor_id not in self._motors:
+          # A motor outside the model (the guide): an ideal servo.
+          servo = servos[motor_id]
+          if servo.torque_enabled:
+            servo.set_present(servo.goal_position, 0, 0)
           continue
         motor, _, dof, actuator = self._motors[motor_id]
         servo = servos[motor_id]

@@ -35,6 +35,10 @@ SAFETY_FIELDS = ('position', 'velocity', 'current')
 _ACTION_BOUND_TOLERANCE = 1e-6
 ACTION_BOUND_MODES = ('raise', 'clip')
 
+# Task arguments that only mean something on a robot (the scene a simulated
+# robot needs is the same without them).
+HARDWARE_ONLY_ARGUMENTS = frozenset({'use_guide', 'interactive'})
+
 
 def wrap_angle(angle):
   """Wraps radians to [-pi, pi)."""
@@ -301,10 +305,13 @@ class RobelTask(composer.Task):
     )
 
   def hardware_auxiliary_joints(self) -> dict[str, mjcf.Element]:
-    """Non-robot motors the task reads on hardware: name -> model joint.
+    """Non-robot motors the task uses on hardware: name -> model joint.
 
     The names match a robot configuration's auxiliary motors (e.g. the
-    D'Claw's 'valve' encoder).
+    D'Claw's 'valve' encoder); the joint is None for a motor that measures
+    no joint of the model (the D'Claw's guide), whose angle the physics
+    then exposes as `auxiliary_angles[name]` and whose goal the task sets
+    in `auxiliary_goals[name]`.
     """
     return {}
 

@@ -70,6 +70,8 @@ class TurnTask(base.RobelTask):
     observation_noise: float = 0.0,
     observation_keys: tuple[str, ...] | None = None,
     action_bounds: str = 'raise',
+    use_guide: bool = False,
+    interactive: bool = False,
   ):
     """Builds the claw station with a valve, and the task.
 
@@ -88,6 +90,10 @@ class TurnTask(base.RobelTask):
       observation_noise: ROBEL's observation-noise fraction.
       observation_keys: the agent's observation; ROBEL's default if None.
       action_bounds: 'raise' or 'clip' for actions outside [-1, 1].
+      use_guide: on a robot with ROBEL's guide motor (ID 60): the guide
+        points at the goal.
+      interactive: on a robot with a guide motor: the guide is released, a
+        person turns it, and its angle is the goal.
 
     Raises:
       ValueError: for an unknown valve or `success_on`.
@@ -106,6 +112,8 @@ class TurnTask(base.RobelTask):
     self._success_on_mean = success_on == SUCCESS_ON_MEAN_ERROR
     self._goal_start = 0.0
     self._episode_initial_angle = 0.0
+    self._use_guide = use_guide
+    self._interactive = interactive
     self._velocity = 0.0
     self._goal = 0.0
     super().__init__(
@@ -138,8 +146,13 @@ class TurnTask(base.RobelTask):
     return self._valve
 
   def hardware_auxiliary_joints(self) -> dict:
-    """On hardware the valve angle comes from its motor (ID 50)."""
-    return {'valve': self._valve.hinge}
+    """On hardware the valve angle comes from its motor (ID 50); the guide
+    motor (ID 60), with `use_guide` or `interactive`, shows or sets the goal
+    (its angle wrapped to [-pi, pi))."""
+    motors = {'valve': self._valve.hinge}
+    if self._use_guide or self._interactive:
+      motors['guide'] = None  # It measures no model joint.
+    return motors
 
   @property
   def initial_angle(self) -> float:
@@ -155,6 +168,13 @@ class TurnTask(base.RobelTask):
     super().after_compile(physics, random_state)
     goal = base.mocap_index(physics, self.arena.goal_body)
     self._goal_quat = physics.data.mocap_quat[goal]  # A view.
+    if (self._use_guide or self._interactive) and not hasattr(
+      physics, 'auxiliary_angles'
+    ):
+      raise ValueError(
+        'use_guide and interactive need a robot with a guide motor: load the '
+        'task with a device_path'
+      )
 
   def _initialize_state(self, physics, random_state) -> None:
     initial = float(
@@ -174,16 +194,24 @@ class TurnTask(base.RobelTask):
     self._episode_initial_angle = initial
     self._goal = self._goal_start
     self._show_goal()
+    if self._use_guide and not self._interactive:
+      physics.auxiliary_goals['guide'] = base.wrap_angle(self._goal)
 
   def _show_goal(self) -> None:
     half_yaw = self._goal / 2
     self._goal_quat[:] = (math.cos(half_yaw), 0.0, 0.0, math.sin(half_yaw))
 
   def _compute(self, physics) -> tuple[float, ...]:
-    if self._velocity:
+    if self._interactive:
+      # A person turns the guide; its angle is the goal.
+      self._goal = physics.auxiliary_angles.get('guide', self._goal)
+      self._show_goal()
+    elif self._velocity:
       # The goal moves with time; time is a whole number of control steps.
       self._goal = self._goal_start + self._velocity * self._mjdata.time
       self._show_goal()
+      if self._use_guide:
+        physics.auxiliary_goals['guide'] = base.wrap_angle(self._goal)
     goal = self._goal
     sensed_qpos, sensed_qvel = self._sensed_qpos, self._sensed_qvel
     sensed_angle = float(sensed_qpos[-1])
