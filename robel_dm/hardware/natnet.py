@@ -46,11 +46,16 @@ Layout decoded here (NatNet 3.0, 3.1, 4.0 and 4.1):
             skeletons, [4.1: assets], labeled markers, force plates,
             devices, timing, ...: not decoded (not needed for poses).
 
-The tracking-valid flag is bit 0 of the rigid body's `params` (NatNetTypes.h,
-as cited by [A]; the pages found name the flag but do not show the bit).
+The tracking-valid flag is taken as bit 0 of the rigid body's `params`:
+[A] defers to NatNetTypes.h for it, and [B], [C] and ROS's mocap_optitrack
+name the flag without showing the bit, so the bit number is the one
+unconfirmed by the pages found (a wrong bit would drop every body, which
+the tracker reports as "no pose received").
 Ambiguities: the 4.1 section byte count is documented by [D] for the
-data-description message and as a layout-wide feature; that the frame's
-sections carry it the same way is inferred, not confirmed against Motive.
+data-description message and as a layout-wide feature; that each frame
+section carries one after its count is inferred, not confirmed against
+Motive, and what it counts is not stated, so the decoder skips it and walks
+every section by its element counts.
 Versions 3.0, 3.1 and 4.0 have the identical layout above; 2.x (rigid bodies
 with marker lists) is not supported. Checked: the round trip against this
 module's own encoder for every supported version (tests/test_tracking.py);
@@ -202,33 +207,27 @@ def decode_frame(
   sized = _has_section_sizes(version)
   reader = _Reader(payload)
   (frame_number,) = reader.unpack(_INT32)
+  # 4.1's section byte counts are read past, not trusted: the sections are
+  # walked by their element counts in every version, so what exactly the
+  # byte count covers (undocumented in what was found) does not matter.
   # Named marker sets: skipped.
   marker_sets = reader.count('marker set')
   if sized:
-    reader.take(reader.count('marker set section byte'))
-  else:
-    for _ in range(marker_sets):
-      reader.skip_string()
-      reader.take(_MARKER_BYTES * reader.count('marker'))
+    reader.unpack(_INT32)
+  for _ in range(marker_sets):
+    reader.skip_string()
+    reader.take(_MARKER_BYTES * reader.count('marker'))
   # Unlabeled ("other") markers: skipped.
   markers = reader.count('unlabeled marker')
   if sized:
-    reader.take(reader.count('unlabeled marker section byte'))
-  else:
-    reader.take(_MARKER_BYTES * markers)
+    reader.unpack(_INT32)
+  reader.take(_MARKER_BYTES * markers)
   count = reader.count('rigid body')
   if sized:
-    size = reader.count('rigid body section byte')
-    if size != count * _RIGID_BODY.size:
-      raise NatNetError(
-        f'{count} rigid bodies in {size} bytes (expected '
-        f'{count * _RIGID_BODY.size}): is the NatNet version right?'
-      )
+    reader.unpack(_INT32)
   bodies = []
   for _ in range(count):
-    body_id, x, y, z, qx, qy, qz, qw, error, params = reader.unpack(
-      _RIGID_BODY
-    )
+    body_id, x, y, z, qx, qy, qz, qw, error, params = reader.unpack(_RIGID_BODY)
     bodies.append(
       RigidBody(
         id=body_id,
@@ -282,9 +281,10 @@ def encode_frame(
   """Encodes a frame-of-data datagram (header included), e.g. for tests.
 
   The sections `decode_frame` reads are laid out as documented above. The
-  rest (no skeletons, assets, labeled markers, force plates or devices,
-  then zeroed timing fields) follows the same sources but is not
-  byte-checked against Motive; `decode_frame` does not read it.
+  tail (empty skeleton, [asset,] labeled-marker, force-plate and device
+  sections, then 46 zeroed bytes standing for the timing fields) is a
+  placeholder, not byte-checked against Motive; `decode_frame` does not
+  read it.
 
   Args:
     frame_number: Motive's frame counter.
@@ -325,12 +325,11 @@ def encode_frame(
       _TRACKING_VALID if body.tracking_valid else 0,
     )
   payload += _section(len(rigid_bodies), bodies, sized)
-  empty_sections = 5 if sized else 4  # Skeletons, [assets,] labeled
-  # markers, force plates, devices.
-  for _ in range(empty_sections):
+  # Skeletons, [assets,] labeled markers, force plates, devices.
+  for _ in range(5 if sized else 4):
     payload += _section(0, b'', sized)
-  # Timecode, subframe, timestamp, three high-resolution clocks, params,
-  # end-of-data marker (zeroed).
+  # Timing placeholder: timecode, subframe, timestamp, three clocks,
+  # params, end of data.
   payload += struct.pack('<IIdQQQhi', 0, 0, 0.0, 0, 0, 0, 0, 0)
   return _HEADER.pack(NAT_FRAMEOFDATA, len(payload) & 0xFFFF) + payload
 
@@ -397,9 +396,7 @@ class NatNetClient:
         membership = socket.inet_aton(multicast_group) + socket.inet_aton(
           local_interface
         )
-        sock.setsockopt(
-          socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, membership
-        )
+        sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, membership)
       else:
         sock.bind((local_interface, data_port))
       sock.setblocking(False)
@@ -407,6 +404,7 @@ class NatNetClient:
       sock.close()
       raise
     self._socket = sock
+    self._address = sock.getsockname()
     self._lock = threading.Lock()
     self._latest: dict[int, tracking.Pose] = {}
     self._new: set[int] = set()
@@ -426,7 +424,7 @@ class NatNetClient:
   @property
   def address(self) -> tuple[str, int]:
     """The data socket's local (address, port)."""
-    return self._socket.getsockname()
+    return self._address
 
   @property
   def version(self) -> tuple[int, int]:

@@ -1,0 +1,620 @@
+"""Motion-tracker poses turned into the D'Kitty's torso state.
+
+A D'Kitty on real motors needs its torso pose (uprightness, heading,
+position) from a motion tracker (robel_facts 4.6). This module holds the
+tracker-independent part:
+
+  * `Pose` and the `TrackerSource` protocol: anything whose `poll()` returns
+    the latest pose per rigid body (OptiTrack NatNet: `natnet.NatNetClient`;
+    tests and simulations: `SimulatedSource`).
+  * `TorsoTracker`: maps a source's poses into robel_dm's world and torso
+    frames, calibrates the origin at reset, estimates the velocities the
+    trackers do not measure, and gives `torso_state()`, the callable
+    `hardware.environment.make_environment(torso_source=...)` expects.
+
+Frames. A raw pose is the tracked body's pose in the tracker's world frame.
+`TorsoTracker` applies, in order:
+  1. `frame_rotation` R_f, a fixed rotation from the tracker's world frame
+     to a z-up frame (`Y_UP_TO_Z_UP` for a y-up tracker such as Motive's
+     default or OpenVR). ROBEL 0.1.2 declared this matrix for OpenVR but
+     never applied it (robel_facts 4.6, 7); here it is applied.
+  2. `body_rotation` / `body_offset`: where the torso frame is relative to
+     the tracked body (the tracker's mounting): the torso's orientation and
+     origin expressed in the tracked body's frame.
+  3. The origin calibration (`calibrate_origin`): a rotation about z and a
+     translation, chosen at reset so that the torso is at robel_dm's frame
+     origin (0, 0, 0.3) facing +y (yaw 0), as ROBEL did. Tilt is kept:
+     a rotation about world z leaves the torso's uprightness unchanged.
+
+All quaternions are (w, x, y, z), as in MuJoCo.
+"""
+
+from collections.abc import Callable, Mapping
+import dataclasses
+import logging
+import math
+import time
+from typing import Protocol
+
+import numpy as np
+
+from robel_dm.entities import dkitty
+
+# Maps a y-up tracker frame (x, y up, z) to robel_dm's z-up world: the
+# tracker's +y becomes +z and its +z becomes -y (a proper rotation, det +1).
+# The matrix ROBEL 0.1.2 declared for OpenVR.
+Y_UP_TO_Z_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+
+# Where `calibrate_origin` puts the torso: robel_dm's (and ROBEL's) D'Kitty
+# frame origin, m.
+ORIGIN = dkitty.ROBEL_FRAME_ORIGIN
+
+DEFAULT_STALE_TIMEOUT = 0.5  # s
+_IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
+# Below this horizontal length of the torso's forward axis the heading is
+# taken from its x-axis instead (the torso points up or down).
+_MIN_HEADING_NORM = 1e-3
+
+
+class TrackingError(RuntimeError):
+  """No usable pose: nothing received, or the latest is too old."""
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Pose:
+  """A rigid body's pose in a tracker's world frame.
+
+  Attributes:
+    position: (x, y, z), m.
+    quaternion: orientation (w, x, y, z), body to world.
+    timestamp: when it was measured or received, s (any monotonic origin,
+      the same as the consuming `TorsoTracker`'s clock).
+  """
+
+  position: np.ndarray
+  quaternion: np.ndarray
+  timestamp: float
+
+  def __post_init__(self):
+    position = np.array(self.position, dtype=float).reshape(3)
+    quaternion = np.array(self.quaternion, dtype=float).reshape(4)
+    object.__setattr__(self, 'position', position)
+    object.__setattr__(self, 'quaternion', quaternion)
+    object.__setattr__(self, 'timestamp', float(self.timestamp))
+
+
+class TrackerSource(Protocol):
+  """Where poses come from (a motion-capture client, a simulation)."""
+
+  def poll(self) -> dict[str, Pose]:
+    """The latest pose per rigid body (name or ID as a string) received
+    since the previous poll; empty when nothing new arrived."""
+
+  def close(self) -> None:
+    """Releases the source (sockets, threads)."""
+
+
+# --- Quaternions (w, x, y, z) ------------------------------------------------
+
+
+def quat_multiply(a, b) -> np.ndarray:
+  """The Hamilton product a b (rotation b, then a)."""
+  aw, ax, ay, az = a
+  bw, bx, by, bz = b
+  return np.array(
+    [
+      aw * bw - ax * bx - ay * by - az * bz,
+      aw * bx + ax * bw + ay * bz - az * by,
+      aw * by - ax * bz + ay * bw + az * bx,
+      aw * bz + ax * by - ay * bx + az * bw,
+    ]
+  )
+
+
+def quat_conjugate(q) -> np.ndarray:
+  return np.array([q[0], -q[1], -q[2], -q[3]], dtype=float)
+
+
+def quat_normalize(q) -> np.ndarray:
+  q = np.asarray(q, dtype=float)
+  norm = np.linalg.norm(q)
+  if not np.isfinite(norm) or norm < 1e-9:
+    raise ValueError(f'not a rotation quaternion: {q}')
+  return q / norm
+
+
+def quat_to_matrix(q) -> np.ndarray:
+  """The rotation matrix of a unit quaternion."""
+  w, x, y, z = quat_normalize(q)
+  return np.array(
+    [
+      [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ]
+  )
+
+
+def matrix_to_quat(matrix) -> np.ndarray:
+  """The unit quaternion (w >= 0) of a rotation matrix.
+
+  Raises:
+    ValueError: if `matrix` is not a proper rotation (orthonormal, det +1).
+  """
+  m = np.asarray(matrix, dtype=float)
+  if (
+    m.shape != (3, 3)
+    or not np.allclose(m @ m.T, np.eye(3), atol=1e-6)
+    or np.linalg.det(m) < 0
+  ):
+    raise ValueError(f'not a proper rotation matrix:\n{m}')
+  # The largest of 4 w^2, 4 x^2, 4 y^2, 4 z^2 gives a well-conditioned
+  # division (Shepperd's method).
+  trace = np.trace(m)
+  candidates = [trace, m[0, 0], m[1, 1], m[2, 2]]
+  k = int(np.argmax(candidates))
+  if k == 0:
+    s = 2.0 * math.sqrt(1.0 + trace)
+    q = [
+      s / 4,
+      (m[2, 1] - m[1, 2]) / s,
+      (m[0, 2] - m[2, 0]) / s,
+      (m[1, 0] - m[0, 1]) / s,
+    ]
+  elif k == 1:
+    s = 2.0 * math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+    q = [
+      (m[2, 1] - m[1, 2]) / s,
+      s / 4,
+      (m[0, 1] + m[1, 0]) / s,
+      (m[0, 2] + m[2, 0]) / s,
+    ]
+  elif k == 2:
+    s = 2.0 * math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+    q = [
+      (m[0, 2] - m[2, 0]) / s,
+      (m[0, 1] + m[1, 0]) / s,
+      s / 4,
+      (m[1, 2] + m[2, 1]) / s,
+    ]
+  else:
+    s = 2.0 * math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+    q = [
+      (m[1, 0] - m[0, 1]) / s,
+      (m[0, 2] + m[2, 0]) / s,
+      (m[1, 2] + m[2, 1]) / s,
+      s / 4,
+    ]
+  q = quat_normalize(q)
+  return -q if q[0] < 0 else q
+
+
+def quat_from_rotation_vector(vector) -> np.ndarray:
+  """exp: the rotation by |vector| rad about vector's direction."""
+  vector = np.asarray(vector, dtype=float)
+  angle = float(np.linalg.norm(vector))
+  if angle < 1e-12:
+    return np.array([1.0, *(vector / 2)])
+  axis = vector / angle
+  return np.array([math.cos(angle / 2), *(math.sin(angle / 2) * axis)])
+
+
+def quat_to_rotation_vector(q) -> np.ndarray:
+  """log: the rotation vector (axis x angle, angle in [0, pi]) of q."""
+  q = quat_normalize(q)
+  if q[0] < 0:  # The same rotation; this sign gives the shorter way.
+    q = -q
+  sine = float(np.linalg.norm(q[1:]))
+  if sine < 1e-12:
+    return 2.0 * q[1:]
+  return 2.0 * math.atan2(sine, q[0]) * q[1:] / sine
+
+
+def yaw_quaternion(yaw: float) -> np.ndarray:
+  """The rotation by `yaw` rad about z."""
+  return np.array([math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)])
+
+
+def heading(q) -> float:
+  """The yaw of an orientation: the angle about z from +y to the body's
+  forward (y) axis projected on the floor (its x-axis if y is vertical)."""
+  m = quat_to_matrix(q)
+  forward = m[:, 1]
+  if math.hypot(forward[0], forward[1]) > _MIN_HEADING_NORM:
+    return math.atan2(-forward[0], forward[1])
+  return math.atan2(m[1, 0], m[0, 0])
+
+
+def average_quaternions(quaternions, weights=None) -> np.ndarray:
+  """Markley's average of unit quaternions.
+
+  The average is the unit quaternion q maximizing sum_i w_i (q_i . q)^2,
+  i.e. the eigenvector of M = sum_i w_i q_i q_i^T with the largest
+  eigenvalue (F. L. Markley, Y. Cheng, J. L. Crassidis, Y. Oshman,
+  "Averaging Quaternions", J. Guidance, Control, and Dynamics 30(4), 2007).
+  It minimizes the weighted sum of squared Frobenius distances between the
+  rotation matrices, and is insensitive to each q_i's sign (q and -q are
+  the same rotation), unlike a component-wise mean.
+
+  Args:
+    quaternions: (N, 4) quaternions (w, x, y, z); need not be unit.
+    weights: (N,) non-negative weights; equal by default.
+
+  Returns:
+    The average (w >= 0).
+  """
+  q = np.array([quat_normalize(x) for x in quaternions])
+  w = np.ones(len(q)) if weights is None else np.asarray(weights, float)
+  m = (q * w[:, None]).T @ q
+  _, vectors = np.linalg.eigh(m)  # Eigenvalues ascending.
+  mean = vectors[:, -1]
+  return -mean if mean[0] < 0 else mean
+
+
+def _as_quaternion(rotation) -> np.ndarray:
+  """A rotation given as a 3x3 matrix or a (w, x, y, z) quaternion."""
+  rotation = np.asarray(rotation, dtype=float)
+  if rotation.shape == (3, 3):
+    return matrix_to_quat(rotation)
+  if rotation.shape == (4,):
+    return quat_normalize(rotation)
+  raise ValueError(
+    f'a rotation is a 3x3 matrix or a quaternion, not shape {rotation.shape}'
+  )
+
+
+# --- Sources -----------------------------------------------------------------
+
+
+class SimulatedSource:
+  """A `TrackerSource` whose poses come from a callable.
+
+  Each poll calls `poses()` once: it returns name -> `Pose` (or an empty
+  mapping when nothing is visible). For tests, and for feeding a simulated
+  robot's torso through the same code path as a real tracker.
+  """
+
+  def __init__(
+    self,
+    poses: Callable[[], Mapping[str | int, Pose]],
+    on_close: Callable[[], None] | None = None,
+  ):
+    """Initializes the source.
+
+    Args:
+      poses: returns the current pose of each visible body.
+      on_close: called once by `close`.
+    """
+    self._poses = poses
+    self._on_close = on_close
+    self._closed = False
+    self.polls = 0
+
+  def poll(self) -> dict[str, Pose]:
+    if self._closed:
+      raise TrackingError('the simulated tracker source is closed')
+    self.polls += 1
+    return {str(name): pose for name, pose in self._poses().items()}
+
+  def close(self) -> None:
+    if not self._closed:
+      self._closed = True
+      if self._on_close is not None:
+        self._on_close()
+
+  def status(self) -> str:
+    return f'simulated source, {self.polls} polls'
+
+
+# --- The torso tracker -------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Calibration:
+  """What `calibrate_origin` measured.
+
+  Attributes:
+    position: the torso's mean position before calibration (z-up tracker
+      frame), m.
+    yaw: the heading removed, rad.
+    samples: how many poses were averaged.
+    spread: the largest distance of a sample from the mean, m (large if the
+      robot moved during calibration).
+  """
+
+  position: np.ndarray
+  yaw: float
+  samples: int
+  spread: float
+
+
+class TorsoTracker:
+  """The D'Kitty's torso (and targets) from a tracker source.
+
+  Velocities. Trackers report poses only, so velocities are estimated by
+  finite differences of consecutive torso samples (t0, p0, q0), (t1, p1,
+  q1) with dt = t1 - t0 > 0:
+    linear (world):   v = (p1 - p0) / dt;
+    angular (torso):  w = log(conj(q0) q1) / dt, the rotation vector of the
+                      relative rotation, taken the short way.
+  Both are exact for constant velocities (constant torso-frame angular
+  velocity), and are the mean over the interval otherwise (an error of
+  about |acceleration| dt / 2 against the velocity at t1). An optional
+  first-order low-pass (time constant `velocity_time_constant`) smooths
+  them: x <- x + dt / (tau + dt) (x_new - x). Samples with dt = 0 (the same
+  measurement twice) keep the current estimate; dt < 0 (a source restart)
+  or a gap longer than `stale_timeout` restart it from zero.
+  """
+
+  def __init__(
+    self,
+    source: TrackerSource,
+    body: str | int,
+    target_body: str | int | None = None,
+    heading_body: str | int | None = None,
+    *,
+    frame_rotation=None,
+    body_rotation=None,
+    body_offset=None,
+    stale_timeout: float = DEFAULT_STALE_TIMEOUT,
+    velocity_time_constant: float = 0.0,
+    clock: Callable[[], float] = time.monotonic,
+  ):
+    """Initializes the tracker.
+
+    Args:
+      source: where poses come from; closed by `close`.
+      body: the torso's rigid body (name or ID) in the source.
+      target_body: the Orient/Walk target's body, if tracked.
+      heading_body: the Walk heading marker's body; the target by default
+        (as in ROBEL).
+      frame_rotation: rotation (3x3 or quaternion) from the tracker's world
+        frame to a z-up frame; None if the tracker is z-up already. Use
+        `Y_UP_TO_Z_UP` for a y-up tracker.
+      body_rotation: the torso frame's orientation in the tracked body's
+        frame (3x3 or quaternion); identity if None.
+      body_offset: the torso origin in the tracked body's frame, m; zero if
+        None.
+      stale_timeout: `torso_state` fails when the newest torso pose is
+        older than this, s.
+      velocity_time_constant: low-pass time constant of the velocity
+        estimates, s (0: none).
+      clock: the time base of the source's timestamps, s.
+    """
+    if stale_timeout <= 0:
+      raise ValueError(f'stale_timeout must be positive: {stale_timeout}')
+    if velocity_time_constant < 0:
+      raise ValueError(
+        f'velocity_time_constant must be >= 0: {velocity_time_constant}'
+      )
+    self._source = source
+    self.body = str(body)
+    self.target_body = None if target_body is None else str(target_body)
+    if heading_body is None:
+      heading_body = self.target_body
+    self.heading_body = None if heading_body is None else str(heading_body)
+    self._frame_q = (
+      _IDENTITY if frame_rotation is None else _as_quaternion(frame_rotation)
+    )
+    self._body_q = (
+      _IDENTITY if body_rotation is None else _as_quaternion(body_rotation)
+    )
+    self._body_offset = (
+      np.zeros(3) if body_offset is None else np.array(body_offset, float)
+    )
+    self._stale_timeout = float(stale_timeout)
+    self._tau = float(velocity_time_constant)
+    self._clock = clock
+    self._latest: dict[str, Pose] = {}
+    # The torso in the z-up tracker frame ("level frame"): time, position,
+    # orientation, and the velocity estimates.
+    self._time: float | None = None
+    self._position = np.zeros(3)
+    self._quaternion = _IDENTITY.copy()
+    self._velocity = np.zeros(3)  # Level frame.
+    self._angular_velocity = np.zeros(3)  # Torso frame.
+    # Level frame -> robel_dm world (set by `calibrate_origin`).
+    self._world_q = _IDENTITY.copy()
+    self._world_m = np.eye(3)
+    self._world_t = np.zeros(3)
+    self.calibration: Calibration | None = None
+
+  # --- Polling ---------------------------------------------------------------
+
+  def update(self) -> bool:
+    """Polls the source once and folds in what it returned.
+
+    Returns:
+      Whether a new torso pose arrived.
+    """
+    poses = self._source.poll()
+    for name, pose in poses.items():
+      self._latest[name] = pose
+    torso = poses.get(self.body)
+    if torso is not None:
+      self._add_torso_sample(torso)
+    return torso is not None
+
+  def _level_pose(self, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
+    """The torso pose in the z-up tracker frame from a raw body pose."""
+    tracked_q = quat_multiply(self._frame_q, quat_normalize(pose.quaternion))
+    position = quat_to_matrix(self._frame_q) @ pose.position
+    position = position + quat_to_matrix(tracked_q) @ self._body_offset
+    return position, quat_normalize(quat_multiply(tracked_q, self._body_q))
+
+  def _add_torso_sample(self, pose: Pose) -> None:
+    position, quaternion = self._level_pose(pose)
+    t = pose.timestamp
+    if self._time is None:
+      self._velocity[:] = 0.0
+      self._angular_velocity[:] = 0.0
+    else:
+      dt = t - self._time
+      # Keep the quaternion in the previous one's hemisphere (the same
+      # rotation) so that the reported quaternion does not flip sign.
+      if np.dot(quaternion, self._quaternion) < 0:
+        quaternion = -quaternion
+      if dt < 0 or dt > self._stale_timeout:
+        self._velocity[:] = 0.0
+        self._angular_velocity[:] = 0.0
+      elif dt > 0:
+        velocity = (position - self._position) / dt
+        relative = quat_multiply(quat_conjugate(self._quaternion), quaternion)
+        angular_velocity = quat_to_rotation_vector(relative) / dt
+        gain = dt / (self._tau + dt)
+        self._velocity += gain * (velocity - self._velocity)
+        self._angular_velocity += gain * (
+          angular_velocity - self._angular_velocity
+        )
+    self._time = t
+    self._position = position
+    self._quaternion = quaternion
+
+  # --- Torso -----------------------------------------------------------------
+
+  def torso_state(self):
+    """The torso's state in robel_dm's world, for `make_environment`.
+
+    Polls the source first.
+
+    Returns:
+      (position (3,) m, quaternion (4,) w x y z, linear velocity (3,) m/s in
+      the world frame, angular velocity (3,) rad/s in the torso frame): the
+      free joint's qpos and qvel.
+
+    Raises:
+      TrackingError: if no torso pose was ever received, or the newest is
+        older than `stale_timeout`.
+    """
+    self.update()
+    if self._time is None:
+      raise TrackingError(
+        f'no pose received for the torso body {self.body!r} yet '
+        f'({self._describe_source()}); is the tracker streaming it and '
+        'the body visible?'
+      )
+    age = self._clock() - self._time
+    if age > self._stale_timeout:
+      raise TrackingError(
+        f'the torso body {self.body!r} was last seen {age:.2f} s ago '
+        f'(stale after {self._stale_timeout} s; {self._describe_source()}); '
+        'is it occluded or the tracker stopped?'
+      )
+    return (
+      self._world_m @ self._position + self._world_t,
+      quat_multiply(self._world_q, self._quaternion),
+      self._world_m @ self._velocity,
+      self._angular_velocity.copy(),
+    )
+
+  def calibrate_origin(
+    self,
+    samples: int = 10,
+    timeout: float = 2.0,
+    poll_interval: float = 0.01,
+  ) -> Calibration:
+    """Makes the torso's current pose robel_dm's origin, facing +y.
+
+    Averages `samples` new torso poses (positions: arithmetic mean;
+    orientations: `average_quaternions`), then sets the world transform so
+    that the mean torso position is `ORIGIN` (0, 0, 0.3) and its heading is
+    0, removing the yaw only (tilt is kept). As ROBEL does at each reset
+    (robel_facts 4.6). Targets are mapped by the same transform.
+
+    Args:
+      samples: how many new torso poses to average.
+      timeout: wall-clock seconds to wait for them.
+      poll_interval: wait between polls that bring nothing new, s.
+
+    Returns:
+      What was measured.
+
+    Raises:
+      TrackingError: if fewer than `samples` poses arrive in time.
+    """
+    if samples < 1:
+      raise ValueError(f'samples must be >= 1: {samples}')
+    positions, quaternions = [], []
+    deadline = time.monotonic() + timeout
+    while len(positions) < samples:
+      if self.update():
+        positions.append(self._position.copy())
+        quaternions.append(self._quaternion.copy())
+        continue
+      if time.monotonic() >= deadline:
+        raise TrackingError(
+          f'origin calibration: {len(positions)} of {samples} poses of the '
+          f'torso body {self.body!r} arrived in {timeout} s '
+          f'({self._describe_source()})'
+        )
+      time.sleep(poll_interval)
+    positions = np.array(positions)
+    mean_position = positions.mean(axis=0)
+    yaw = heading(average_quaternions(quaternions))
+    self._world_q = yaw_quaternion(-yaw)
+    self._world_m = quat_to_matrix(self._world_q)
+    self._world_t = ORIGIN - self._world_m @ mean_position
+    spread = float(np.max(np.linalg.norm(positions - mean_position, axis=1)))
+    if spread > 0.01:
+      logging.warning(
+        'torso moved %.3f m during origin calibration of body %r',
+        spread,
+        self.body,
+      )
+    self.calibration = Calibration(mean_position, yaw, samples, spread)
+    return self.calibration
+
+  def reset_origin(self) -> None:
+    """Forgets the calibration (world = z-up tracker frame)."""
+    self._world_q = _IDENTITY.copy()
+    self._world_m = np.eye(3)
+    self._world_t = np.zeros(3)
+    self.calibration = None
+
+  # --- Targets ---------------------------------------------------------------
+
+  def target_position(self) -> np.ndarray:
+    """The target body's (x, y) in robel_dm's world, m.
+
+    The latest pose ever received is used (as ROBEL reuses the cached
+    pose of a target it loses); polls the source first.
+
+    Raises:
+      ValueError: if no target body is configured.
+      TrackingError: if it was never seen.
+    """
+    return self._body_xy(self.target_body, 'target')
+
+  def heading_position(self) -> np.ndarray:
+    """The heading marker's (x, y) in robel_dm's world, m (the target's
+    unless a heading body is configured). See `target_position`."""
+    return self._body_xy(self.heading_body, 'heading')
+
+  def _body_xy(self, name: str | None, role: str) -> np.ndarray:
+    if name is None:
+      raise ValueError(f'no {role} body is configured')
+    self.update()
+    pose = self._latest.get(name)
+    if pose is None:
+      raise TrackingError(
+        f'no pose received for the {role} body {name!r} yet '
+        f'({self._describe_source()})'
+      )
+    level = quat_to_matrix(self._frame_q) @ pose.position
+    return (self._world_m @ level + self._world_t)[:2]
+
+  # --- Misc ------------------------------------------------------------------
+
+  def _describe_source(self) -> str:
+    status = getattr(self._source, 'status', None)
+    return status() if callable(status) else type(self._source).__name__
+
+  def close(self) -> None:
+    """Closes the source."""
+    self._source.close()
+
+  def __enter__(self) -> 'TorsoTracker':
+    return self
+
+  def __exit__(self, *exc_info) -> None:
+    self.close()

@@ -1,0 +1,617 @@
+"""The tracker layer: NatNet over loopback UDP, frames, calibration, velocities.
+
+Network traffic stays on 127.0.0.0/8; every wait is bounded.
+"""
+
+import math
+import socket
+import time
+
+import mujoco
+import numpy as np
+import pytest
+
+from robel_dm import suite
+from robel_dm.hardware import natnet
+from robel_dm.hardware import tracking as tr
+
+_WAIT = 2.0  # s, the longest any test waits for a datagram.
+
+
+def _rotation(axis, angle):
+  return tr.quat_from_rotation_vector(np.asarray(axis, float) * angle)
+
+
+def _quat_error(a, b) -> float:
+  """Distance between quaternions up to sign (q and -q: the same rotation)."""
+  a, b = np.asarray(a), np.asarray(b)
+  return float(min(np.abs(a - b).max(), np.abs(a + b).max()))
+
+
+class _Clock:
+  """A settable clock for `TorsoTracker` and the simulated sources."""
+
+  def __init__(self, now=0.0):
+    self.now = now
+
+  def __call__(self):
+    return self.now
+
+
+def _moving_source(
+  clock,
+  position,
+  quaternion,
+  velocity=(0, 0, 0),
+  angular_velocity_body=(0, 0, 0),
+  body='torso',
+):
+  """A body at constant linear velocity (tracker frame) and constant
+  body-frame angular velocity: p(t) = p + v t, q(t) = q exp(w t / 2)."""
+  position, velocity = np.asarray(position, float), np.asarray(velocity, float)
+  omega = np.asarray(angular_velocity_body, float)
+
+  def poses():
+    t = clock.now
+    q = tr.quat_multiply(quaternion, tr.quat_from_rotation_vector(omega * t))
+    return {body: tr.Pose(position + velocity * t, q, t)}
+
+  return tr.SimulatedSource(poses)
+
+
+# --- Quaternion helpers -------------------------------------------------------
+
+
+def test_quaternion_helpers():
+  rng = np.random.default_rng(0)
+  for _ in range(20):
+    q = tr.quat_normalize(rng.normal(size=4))
+    assert _quat_error(tr.matrix_to_quat(tr.quat_to_matrix(q)), q) < 1e-12
+    vector = rng.uniform(-1, 1, 3)
+    assert np.allclose(
+      tr.quat_to_rotation_vector(tr.quat_from_rotation_vector(vector)), vector
+    )
+  assert np.allclose(
+    tr.matrix_to_quat(tr.Y_UP_TO_Z_UP) @ [1, 0, 0, 0], 0.5**0.5
+  )
+  with pytest.raises(ValueError, match='proper rotation'):
+    tr.matrix_to_quat(np.diag([1.0, 1.0, -1.0]))
+  # Markley's mean ignores each sample's sign; a component mean would not.
+  mean = _rotation([0, 0, 1], 0.3)
+  samples = [
+    sign * tr.quat_multiply(mean, _rotation(rng.normal(size=3), 0.01))
+    for sign in (1, -1, 1, -1, -1, 1)
+  ]
+  assert _quat_error(tr.average_quaternions(samples), mean) < 0.01
+
+
+# --- NatNet -------------------------------------------------------------------
+
+
+def _bodies():
+  return [
+    natnet.RigidBody(1, (0.1, 1.2, -0.3), (0.9, 0.1, -0.3, 0.3), 0.0004),
+    # w < 0: the other hemisphere, decoded as sent.
+    natnet.RigidBody(7, (-2.0, 0.5, 4.0), (-0.5, 0.5, 0.5, -0.5), 0.001),
+    natnet.RigidBody(12, (3.0, 3.0, 3.0), (1.0, 0.0, 0.0, 0.0), 0.0, False),
+  ]
+
+
+def _marker_sets():
+  return {
+    'kitty': [(0.1, 0.2, 0.3), (0.4, 0.5, 0.6), (0.7, 0.8, 0.9)],
+    'all': [(1.0, 2.0, 3.0)],
+  }
+
+
+@pytest.mark.parametrize('version', natnet.SUPPORTED_VERSIONS)
+def test_natnet_frames_round_trip(version):
+  datagram = natnet.encode_frame(
+    41,
+    _bodies(),
+    marker_sets=_marker_sets(),
+    unlabeled_markers=[(5.0, 6.0, 7.0), (8.0, 9.0, 10.0)],
+    version=version,
+  )
+  frame = natnet.decode_message(datagram, version)
+  assert frame.frame_number == 41
+  assert [b.id for b in frame.rigid_bodies] == [1, 7, 12]
+  for sent, got in zip(_bodies(), frame.rigid_bodies, strict=True):
+    # float32 on the wire.
+    assert np.allclose(got.position, sent.position, atol=1e-6)
+    assert np.allclose(got.quaternion, sent.quaternion, atol=1e-7)
+    assert got.mean_error == pytest.approx(sent.mean_error, rel=1e-6)
+    assert got.tracking_valid == sent.tracking_valid
+  # Truncation anywhere up to the last rigid body's end is detected. After
+  # it come the encoder's empty sections (4 in 3.x/4.0, 5 with 4.1's byte
+  # counts) and 46 bytes of timing fields, which the decoder does not read.
+  sized = version >= (4, 1)
+  tail = (5 * 8 if sized else 4 * 4) + 46
+  rigid_end = len(datagram) - tail
+  payload = datagram[4:rigid_end]
+  assert natnet.decode_frame(payload, version) == frame
+  for cut in (2, 20, len(payload) - 1):
+    with pytest.raises(natnet.NatNetError, match='truncated'):
+      natnet.decode_frame(payload[:cut], version)
+  for cut in (3, 20):  # The header's payload size catches short datagrams.
+    with pytest.raises(natnet.NatNetError):
+      natnet.decode_message(datagram[:cut], version)
+  assert natnet.decode_message(natnet.encode_request(10), version) is None
+
+
+def test_natnet_versions_and_layouts():
+  with pytest.raises(ValueError, match='not supported'):
+    natnet.decode_frame(b'', (2, 9))
+  with pytest.raises(ValueError, match='not supported'):
+    natnet.NatNetClient(multicast_group=None, data_port=0, version=(5, 0))
+  # 4.1 prefixes each section with its byte count; the layouts differ.
+  bodies = _bodies()[:1]
+  assert len(natnet.encode_frame(0, bodies, version=(4, 1))) > len(
+    natnet.encode_frame(0, bodies, version=(4, 0))
+  )
+  assert natnet.encode_frame(0, bodies, version=(3, 0)) == natnet.encode_frame(
+    0, bodies, version=(4, 0)
+  )
+
+
+def _wait_for(poll, count=1):
+  """Polls until `count` bodies arrived in total (bounded by _WAIT)."""
+  received = {}
+  deadline = time.monotonic() + _WAIT
+  while len(received) < count and time.monotonic() < deadline:
+    received.update(poll())
+    time.sleep(0.002)
+  return received
+
+
+@pytest.mark.parametrize('version', [(3, 1), (4, 0), (4, 1)])
+def test_natnet_client_receives_rigid_bodies_over_loopback(version):
+  with (
+    natnet.NatNetClient(
+      multicast_group=None,
+      data_port=0,
+      local_interface='127.0.0.1',
+      version=version,
+    ) as client,
+    socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender,
+  ):
+    sender.sendto(b'\x07\x00', client.address)  # Malformed: counted.
+    datagram = natnet.encode_frame(
+      1,
+      _bodies(),
+      marker_sets=_marker_sets(),
+      unlabeled_markers=[(5.0, 6.0, 7.0)],
+      version=version,
+    )
+    sent_at = time.monotonic()
+    sender.sendto(datagram, client.address)
+    poses = _wait_for(client.poll, 2)
+    # Body 12 is not tracked in this frame: dropped.
+    assert sorted(poses) == ['1', '7']
+    for body in _bodies()[:2]:
+      pose = poses[str(body.id)]
+      assert np.allclose(pose.position, body.position, atol=1e-6)
+      assert np.allclose(pose.quaternion, body.quaternion, atol=1e-7)
+      assert sent_at <= pose.timestamp <= time.monotonic()
+    assert client.poll() == {}  # Nothing new.
+    # A later frame updating body 7 only.
+    moved = natnet.RigidBody(7, (0.0, 0.0, 1.0), (1.0, 0.0, 0.0, 0.0))
+    datagram = natnet.encode_frame(2, [moved], version=version)
+    sender.sendto(datagram, client.address)
+    poses = _wait_for(client.poll)
+    assert list(poses) == ['7']
+    assert np.allclose(poses['7'].position, (0, 0, 1))
+    assert set(client.latest()) == {'1', '7'}
+    stats = client.stats
+    assert stats['frames'] == 2 and stats['malformed'] == 1
+    assert stats['invalid'] == 1
+    assert 'malformed' in client.status()
+  assert 'NatNet' in client.status()  # Still describes itself once closed.
+
+
+def test_natnet_unicast_subscribes_and_ignores_other_hosts():
+  with (
+    socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as server,
+    socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as stranger,
+  ):
+    server.bind(('127.0.0.1', 0))  # Motive's command port.
+    server.settimeout(_WAIT)
+    stranger.bind(('127.0.0.2', 0))
+    with natnet.NatNetClient(
+      multicast_group=None,
+      data_port=0,
+      local_interface='127.0.0.1',
+      server_address='127.0.0.1',
+      command_port=server.getsockname()[1],
+    ) as client:
+      request, client_address = server.recvfrom(1024)
+      assert request[:2] == bytes([natnet.NAT_CONNECT, 0])
+      assert client_address == client.address
+      body = natnet.RigidBody(3, (1.0, 2.0, 3.0), (1.0, 0.0, 0.0, 0.0))
+      stray = natnet.RigidBody(4, (1.0, 2.0, 3.0), (1.0, 0.0, 0.0, 0.0))
+      stranger.sendto(natnet.encode_frame(1, [stray]), client_address)
+      server.sendto(natnet.encode_frame(1, [body]), client_address)
+      assert list(_wait_for(client.poll)) == ['3']
+      time.sleep(0.05)
+      assert client.poll() == {}  # The stranger's frame was ignored.
+
+
+def test_torso_tracker_on_natnet_reports_what_is_missing():
+  with natnet.NatNetClient(
+    multicast_group=None, data_port=0, local_interface='127.0.0.1'
+  ) as client:
+    tracker = tr.TorsoTracker(client, body=5, frame_rotation=tr.Y_UP_TO_Z_UP)
+    with pytest.raises(tr.TrackingError, match=r"torso body '5'.*0 frames"):
+      tracker.torso_state()
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:
+      # Motive's default frame is y-up: a level torso has its z-axis along
+      # the tracker's +y.
+      level = tr.matrix_to_quat(tr.Y_UP_TO_Z_UP.T)
+      body = natnet.RigidBody(5, (0.0, 0.4, 0.0), tuple(level))
+      sender.sendto(natnet.encode_frame(1, [body]), client.address)
+      deadline = time.monotonic() + _WAIT
+      while not tracker.update() and time.monotonic() < deadline:
+        time.sleep(0.002)
+    position, quaternion, _, _ = tracker.torso_state()
+    assert np.allclose(position, (0, 0, 0.4), atol=1e-6)
+    assert tr.quat_to_matrix(quaternion)[2, 2] == pytest.approx(1.0)
+
+
+# --- Frames, calibration, velocities ------------------------------------------
+
+
+def test_y_up_tracker_frame_is_converted_to_z_up():
+  clock = _Clock()
+  level_in_y_up = tr.matrix_to_quat(tr.Y_UP_TO_Z_UP.T)
+  source = _moving_source(
+    clock, (0.5, 0.2, -0.1), level_in_y_up, velocity=(0.0, 0.3, 0.0)
+  )
+  tracker = tr.TorsoTracker(
+    source, 'torso', frame_rotation=tr.Y_UP_TO_Z_UP, clock=clock
+  )
+  start, quaternion, _, _ = tracker.torso_state()
+  # Tracker (x, y, z) -> world (x, -z, y).
+  assert np.allclose(start, (0.5, 0.1, 0.2))
+  assert tr.quat_to_matrix(quaternion)[2, 2] == pytest.approx(1.0)  # Upright.
+  clock.now = 0.1
+  end, _, velocity, _ = tracker.torso_state()
+  # Moving up in the tracker (its +y) is moving up in robel_dm (+z).
+  assert np.allclose(end - start, (0.0, 0.0, 0.03))
+  assert np.allclose(velocity, (0.0, 0.0, 0.3))
+  # Without the conversion (ROBEL 0.1.2's bug) the same torso would read as
+  # lying on its side and moving sideways.
+  clock.now = 0.0
+  raw = tr.TorsoTracker(source, 'torso', clock=clock)
+  _, quaternion, _, _ = raw.torso_state()
+  assert abs(tr.quat_to_matrix(quaternion)[2, 2]) < 1e-9
+
+
+def test_origin_calibration_levels_position_and_heading_keeps_tilt():
+  clock = _Clock()
+  rng = np.random.default_rng(1)
+  # A torso rolled and pitched a little, turned by 2 rad, away from the
+  # tracker's origin; in a y-up tracker frame, with jitter.
+  tilt = tr.quat_multiply(_rotation([1, 0, 0], 0.2), _rotation([0, 1, 0], -0.1))
+  torso = tr.quat_multiply(_rotation([0, 0, 1], 2.0), tilt)
+  to_tracker = tr.matrix_to_quat(tr.Y_UP_TO_Z_UP.T)
+  tracker_q = tr.quat_multiply(to_tracker, torso)
+  tracker_p = tr.Y_UP_TO_Z_UP.T @ np.array([1.2, -0.7, 0.25])
+  samples = []
+
+  def poses():
+    clock.now += 0.01
+    jitter = rng.normal(scale=0.001, size=3)
+    sign = rng.choice([-1.0, 1.0])  # Either hemisphere.
+    q = sign * tr.quat_multiply(tracker_q, _rotation(rng.normal(size=3), 0.002))
+    samples.append(tracker_p + jitter)
+    return {'torso': tr.Pose(tracker_p + jitter, q, clock.now)}
+
+  tracker = tr.TorsoTracker(
+    tr.SimulatedSource(poses),
+    'torso',
+    frame_rotation=tr.Y_UP_TO_Z_UP,
+    clock=clock,
+  )
+  calibration = tracker.calibrate_origin(samples=10)
+  assert calibration.samples == 10 and len(samples) == 10
+  assert calibration.yaw == pytest.approx(2.0, abs=0.01)
+  assert calibration.spread < 0.01
+  position, quaternion, _, _ = tracker.torso_state()
+  # Within the jitter of the last sample.
+  assert np.allclose(position, tr.ORIGIN, atol=0.005)
+  matrix = tr.quat_to_matrix(quaternion)
+  assert tr.heading(quaternion) == pytest.approx(0.0, abs=0.01)
+  assert matrix[0, 1] == pytest.approx(0.0, abs=0.01) and matrix[1, 1] > 0
+  # Tilt kept: the torso axes' vertical components are unchanged.
+  assert np.allclose(matrix[2], tr.quat_to_matrix(torso)[2], atol=0.01)
+  assert tr.ORIGIN[2] == 0.3
+
+
+def test_moving_forward_after_calibration_is_moving_along_y():
+  clock = _Clock()
+  heading = _rotation([0, 0, 1], -2.5)
+  forward = tr.quat_to_matrix(heading) @ [0, 1, 0]  # Level frame.
+  tracked = tr.quat_multiply(tr.matrix_to_quat(tr.Y_UP_TO_Z_UP.T), heading)
+  velocity = tr.Y_UP_TO_Z_UP.T @ (0.2 * forward)  # Tracker frame.
+  source = _moving_source(clock, (3.0, 0.3, 1.0), tracked, velocity=velocity)
+  tracker = tr.TorsoTracker(
+    source, 'torso', frame_rotation=tr.Y_UP_TO_Z_UP, clock=clock
+  )
+  tracker.calibrate_origin(samples=3)
+  clock.now = 0.5
+  tracker.torso_state()
+  clock.now = 1.0
+  position, _, world_velocity, _ = tracker.torso_state()
+  assert np.allclose(position, tr.ORIGIN + (0.0, 0.2, 0.0))
+  assert np.allclose(world_velocity, (0.0, 0.2, 0.0))
+
+
+def test_finite_difference_velocities_with_mounting_and_calibration():
+  clock = _Clock()
+  omega_torso = np.array([0.3, -1.2, 2.0])  # rad/s, torso frame.
+  velocity_level = np.array([0.4, -0.1, 0.05])  # m/s, z-up tracker frame.
+  # The tracked body is mounted rotated and offset on the torso.
+  mount = _rotation([1, 1, 0] / np.sqrt(2), 0.7)  # Torso in body frame.
+  offset = np.array([0.02, -0.05, 0.1])  # Torso origin in body frame.
+  torso0 = tr.quat_multiply(
+    _rotation([0, 0, 1], 0.9), _rotation([1, 0, 0], 0.1)
+  )
+  start = np.array([0.3, 0.2, 0.25])
+
+  def poses():
+    t = clock.now
+    torso = tr.quat_multiply(
+      torso0, tr.quat_from_rotation_vector(omega_torso * t)
+    )
+    body = tr.quat_multiply(torso, tr.quat_conjugate(mount))
+    body_p = start + velocity_level * t - tr.quat_to_matrix(body) @ offset
+    body_q = tr.quat_multiply(tr.matrix_to_quat(tr.Y_UP_TO_Z_UP.T), body)
+    return {'7': tr.Pose(tr.Y_UP_TO_Z_UP.T @ body_p, body_q, t)}
+
+  tracker = tr.TorsoTracker(
+    tr.SimulatedSource(poses),
+    7,
+    frame_rotation=tr.Y_UP_TO_Z_UP,
+    body_rotation=tr.quat_to_matrix(mount),
+    body_offset=offset,
+    clock=clock,
+  )
+  calibration = tracker.calibrate_origin(samples=1)
+  yaw = tr.quat_to_matrix(tr.yaw_quaternion(-calibration.yaw))
+  for step in range(1, 30):  # A 100 Hz tracker.
+    clock.now = 0.01 * step
+    position, quaternion, velocity, angular_velocity = tracker.torso_state()
+    assert np.allclose(velocity, yaw @ velocity_level, atol=1e-9)
+    assert np.allclose(angular_velocity, omega_torso, atol=1e-9)
+  assert np.allclose(
+    position, tr.ORIGIN + yaw @ (velocity_level * clock.now), atol=1e-9
+  )
+  # The same measurement twice (dt = 0) keeps the estimate; time running
+  # backwards (a restarted source) restarts it from zero.
+  assert np.allclose(tracker.torso_state()[3], omega_torso)
+  clock.now -= 0.5
+  assert np.allclose(tracker.torso_state()[3], 0.0)
+
+
+def test_velocity_low_pass():
+  clock = _Clock()
+  source = _moving_source(clock, (0, 0, 0), (1, 0, 0, 0), velocity=(1, 0, 0))
+  tracker = tr.TorsoTracker(
+    source, 'torso', velocity_time_constant=0.05, clock=clock
+  )
+  tracker.torso_state()
+  speeds = []
+  for step in range(1, 41):
+    clock.now = 0.01 * step
+    speeds.append(tracker.torso_state()[2][0])
+  assert speeds[0] == pytest.approx(0.01 / 0.06)  # One step of dt/(tau+dt).
+  assert np.all(np.diff(speeds) > 0) and speeds[-1] > 0.99
+
+
+def test_missing_or_stale_tracker_raises_clear_errors():
+  clock = _Clock()
+  visible = {'on': False}
+
+  def poses():
+    pose = tr.Pose((0, 0, 0.3), (1, 0, 0, 0), clock.now)
+    return {'kitty': pose} if visible['on'] else {}
+
+  tracker = tr.TorsoTracker(tr.SimulatedSource(poses), 'kitty', clock=clock)
+  with pytest.raises(tr.TrackingError, match="no pose.*torso body 'kitty'"):
+    tracker.torso_state()
+  with pytest.raises(tr.TrackingError, match="0 of 3 poses.*'kitty'"):
+    tracker.calibrate_origin(samples=3, timeout=0.05)
+  visible['on'] = True
+  assert len(tracker.torso_state()) == 4
+  visible['on'] = False
+  clock.now = 0.4
+  tracker.torso_state()  # Not stale yet.
+  clock.now = 0.6
+  with pytest.raises(tr.TrackingError, match=r"'kitty'.*0.60 s ago"):
+    tracker.torso_state()
+  with pytest.raises(ValueError, match='no target body'):
+    tracker.target_position()
+  with pytest.raises(ValueError, match='stale_timeout'):
+    tr.TorsoTracker(tr.SimulatedSource(poses), 'kitty', stale_timeout=0)
+  closed = []
+  source = tr.SimulatedSource(poses, on_close=lambda: closed.append(1))
+  with tr.TorsoTracker(source, 'kitty'):
+    pass
+  assert closed == [1]
+  with pytest.raises(tr.TrackingError, match='closed'):
+    source.poll()
+
+
+def test_targets_follow_the_calibrated_world():
+  clock = _Clock()
+  to_tracker = tr.Y_UP_TO_Z_UP.T
+  turned = tr.quat_multiply(
+    tr.matrix_to_quat(to_tracker), tr.yaw_quaternion(math.pi / 2)
+  )
+  # Level frame: torso at (1, 1, 0.3) facing -x; target 2 m ahead of it.
+  level = {
+    'torso': (1.0, 1.0, 0.3),
+    'goal': (-1.0, 1.0, 0.0),
+    'flag': (1.0, 3.0, 0.0),
+  }
+
+  def poses():
+    return {
+      name: tr.Pose(to_tracker @ p, turned, clock.now)
+      for name, p in level.items()
+    }
+
+  source = tr.SimulatedSource(poses)
+  tracker = tr.TorsoTracker(source, 'torso', 'ball', clock=clock)
+  with pytest.raises(tr.TrackingError, match="target body 'ball'"):
+    tracker.target_position()
+  tracker = tr.TorsoTracker(
+    source, 'torso', 'goal', frame_rotation=tr.Y_UP_TO_Z_UP, clock=clock
+  )
+  tracker.calibrate_origin(samples=2)
+  assert np.allclose(tracker.target_position(), (0.0, 2.0))
+  assert np.allclose(tracker.heading_position(), (0.0, 2.0))  # Default.
+  tracker = tr.TorsoTracker(
+    source, 'torso', 'goal', 'flag', frame_rotation=tr.Y_UP_TO_Z_UP, clock=clock
+  )
+  tracker.calibrate_origin(samples=2)
+  assert np.allclose(tracker.heading_position(), (2.0, 0.0))
+
+
+# --- The D'Kitty on the virtual bus -------------------------------------------
+
+# At the control rate (10 Hz) the finite difference is the mean velocity over
+# the 0.1 s step, off from the velocity at its end by up to |a| dt / 2. The
+# standing D'Kitty under +-0.1 actions accelerates below ~0.5 m/s^2 and
+# ~3 rad/s^2, so 0.025 m/s and 0.15 rad/s (measured: 0.011 and 0.068).
+_CONTROL_RATE_VELOCITY_TOLERANCE = 0.025  # m/s
+_CONTROL_RATE_ANGULAR_TOLERANCE = 0.15  # rad/s
+
+
+def _tracked_virtual_kitty(emit=None):
+  """The stand task on the virtual bus and a tracker of its simulated torso.
+
+  Args:
+    emit: maps the simulated torso (position, quaternion) to what the
+      tracker source reports; identity if None.
+  """
+  env = suite.load('dkitty', 'stand_fixed', seed=0, device_path='virtual')
+  simulation = env.virtual_bus.driver
+
+  def now():
+    return float(simulation.physics.data.time)
+
+  def poses():
+    position, quaternion, _, _ = simulation.torso_pose()
+    if emit is not None:
+      position, quaternion = emit(position, quaternion)
+    return {'torso': tr.Pose(position, quaternion, now())}
+
+  return env, simulation, tr.SimulatedSource(poses), now
+
+
+def _small_actions(env, steps):
+  rng = np.random.default_rng(0)
+  joints = env.physics.bind(env.task.robot.joints).qpos
+  centre = env.task.normalize_joint_targets(joints)
+  return np.clip(centre + rng.uniform(-0.1, 0.1, (steps, 12)), -1, 1)
+
+
+def test_tracker_reproduces_the_virtual_kittys_torso():
+  env, simulation, source, now = _tracked_virtual_kitty()
+  tracker = tr.TorsoTracker(source, 'torso', clock=now)
+  try:
+    env.reset()
+    state = tracker.torso_state()
+    # The free joint's contract: qpos (3 + 4) and qvel (3 + 3), floats.
+    assert [np.shape(x) for x in state] == [(3,), (4,), (3,), (3,)]
+    assert all(np.asarray(x).dtype == np.float64 for x in state)
+    assert np.linalg.norm(state[1]) == pytest.approx(1.0)
+    for action in _small_actions(env, 20):
+      env.step(action)
+      position, quaternion, velocity, angular_velocity = tracker.torso_state()
+      truth = simulation.torso_pose()
+      assert np.abs(position - truth[0]).max() < 1e-3
+      assert _quat_error(quaternion, truth[1]) < 1e-3
+      assert np.abs(velocity - truth[2]).max() < (
+        _CONTROL_RATE_VELOCITY_TOLERANCE
+      )
+      assert np.abs(angular_velocity - truth[3]).max() < (
+        _CONTROL_RATE_ANGULAR_TOLERANCE
+      )
+    # At the physics rate (a 400 Hz tracker), with the torso kicked into a
+    # tumble, the estimates are exact: MuJoCo's semi-implicit Euler step
+    # advances qpos with the new qvel (the free joint's quaternion by its
+    # torso-frame angular velocity), exactly what the finite difference
+    # inverts.
+    model, data = simulation.physics.model, simulation.physics.data
+    free = int(np.flatnonzero(model.jnt_type == mujoco.mjtJoint.mjJNT_FREE)[0])
+    dof = int(model.jnt_dofadr[free])
+    data.qvel[dof : dof + 6] = (0.3, -0.2, 1.0, 2.0, -1.5, 1.0)
+    tracker.torso_state()
+    speeds = []
+    for _ in range(40):
+      simulation.advance(model.opt.timestep)
+      _, _, velocity, angular_velocity = tracker.torso_state()
+      truth = simulation.torso_pose()
+      assert np.allclose(velocity, truth[2], atol=1e-6)
+      assert np.allclose(angular_velocity, truth[3], atol=1e-6)
+      speeds.append(np.linalg.norm(truth[3]))
+    assert max(speeds) > 0.3  # Really moving.
+  finally:
+    tracker.close()
+    env.close()
+
+
+def test_tracker_recovers_the_torso_through_a_y_up_frame_and_a_mount():
+  # The torso as a y-up tracker sees it: the world turned by 1 rad and
+  # shifted, the tracked body mounted rotated and offset on the torso.
+  world_turn = tr.yaw_quaternion(1.0)
+  shift = np.array([2.0, -1.0, 0.1])
+  mount = _rotation([0, 1, 0], math.pi / 2)  # Torso in the body's frame.
+  offset = np.array([0.0, 0.03, 0.05])  # Torso origin in the body's frame.
+  to_tracker = tr.matrix_to_quat(tr.Y_UP_TO_Z_UP.T)
+
+  def emit(position, quaternion):
+    torso = tr.quat_multiply(world_turn, quaternion)
+    body = tr.quat_multiply(torso, tr.quat_conjugate(mount))
+    body_p = tr.quat_to_matrix(world_turn) @ position + shift
+    body_p = body_p - tr.quat_to_matrix(body) @ offset
+    return tr.Y_UP_TO_Z_UP.T @ body_p, tr.quat_multiply(to_tracker, body)
+
+  env, simulation, source, now = _tracked_virtual_kitty(emit)
+  tracker = tr.TorsoTracker(
+    source,
+    'torso',
+    frame_rotation=tr.Y_UP_TO_Z_UP,
+    body_rotation=mount,
+    body_offset=offset,
+    clock=now,
+  )
+  try:
+    env.reset()
+    tracker.calibrate_origin()
+    start, start_q, _, _ = simulation.torso_pose()
+    # Calibration makes the reset pose the origin, facing +y: in the
+    # simulation's world that is a turn by -heading and a shift.
+    undo = tr.yaw_quaternion(-tr.heading(start_q))
+    for action in _small_actions(env, 10):
+      env.step(action)
+      position, quaternion, velocity, angular_velocity = tracker.torso_state()
+      truth = simulation.torso_pose()
+      expected = tr.ORIGIN + tr.quat_to_matrix(undo) @ (truth[0] - start)
+      assert np.abs(position - expected).max() < 1e-3
+      assert _quat_error(quaternion, tr.quat_multiply(undo, truth[1])) < 1e-3
+      # Uprightness is frame-independent.
+      assert tr.quat_to_matrix(quaternion)[2, 2] == pytest.approx(
+        tr.quat_to_matrix(truth[1])[2, 2], abs=1e-6
+      )
+      assert np.abs(velocity - tr.quat_to_matrix(undo) @ truth[2]).max() < (
+        _CONTROL_RATE_VELOCITY_TOLERANCE
+      )
+      assert np.abs(angular_velocity - truth[3]).max() < (
+        _CONTROL_RATE_ANGULAR_TOLERANCE
+      )
+  finally:
+    tracker.close()
+    env.close()
