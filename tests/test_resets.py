@@ -87,8 +87,6 @@ def test_manual_reset_releases_the_motors_while_the_person_works():
 def test_reset_choices_are_checked():
   with pytest.raises(ValueError, match="unknown reset 'bounce'"):
     suite.load('dclaw', 'pose_fixed', device_path='virtual', reset='bounce')
-  with pytest.raises(ValueError, match='scripted dkitty reset'):
-    suite.load('dkitty', 'stand_fixed', device_path='virtual', reset='scripted')
   with pytest.raises(ValueError, match='need a device_path'):
     suite.load('dclaw', 'pose_fixed', reset='move')
 
@@ -141,3 +139,58 @@ def test_interactive_mode_takes_the_goal_from_the_guide():
 def test_guide_options_need_a_robot():
   with pytest.raises(ValueError, match='guide motor'):
     suite.load('dclaw', 'turn_fixed', task_kwargs={'interactive': True})
+
+
+def test_dkitty_stand_up_sequence_runs_and_ends_upright(monkeypatch):
+  after_stand_up = []
+  original = resets.DKittyScriptedReset._stand_up
+
+  def spy(self, robot, clock):
+    original(self, robot, clock)
+    after_stand_up.append(resets._upright_and_height(self._torso))  # noqa: SLF001
+
+  monkeypatch.setattr(resets.DKittyScriptedReset, '_stand_up', spy)
+  env = suite.load(
+    'dkitty', 'stand_fixed', seed=0, device_path='virtual', reset='scripted'
+  )
+  try:
+    env.reset()
+    # The robot started crouched (not standing): the tuck and stand-up
+    # sequence ran, left it upright at standing height, and the task's
+    # crouch was then moved to.
+    assert after_stand_up
+    upright, height = after_stand_up[-1]
+    assert upright > 0.9 and abs(height - 0.30) < 0.05
+    joints = env.physics.bind(env.task.robot.joints).qpos
+    assert (
+      np.abs(joints - env.physics.bind(env.task.robot.actuators).ctrl).max()
+      < 0.3
+    )
+  finally:
+    env.close()
+
+
+def test_dkitty_that_cannot_get_up_fails_clearly_and_is_released():
+  env = suite.load(
+    'dkitty', 'walk_fixed', seed=0, device_path='virtual', reset='scripted'
+  )
+  try:
+    env.reset()
+    simulation = env.simulated_robot
+    physics = simulation.physics
+    root = int(physics.bind(env.task.root_joint).qposadr)
+    physics.data.qpos[root : root + 7] = [
+      0,
+      0,
+      0.15,
+      0,
+      1,
+      0,
+      0,
+    ]  # Upside down.
+    simulation.advance(1.0)
+    with pytest.raises(resets.ResetError, match='did not stand up'):
+      env.reset()
+    assert not any(_torque(env.virtual_bus).values())
+  finally:
+    env.close()

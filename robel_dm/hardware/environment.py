@@ -43,6 +43,11 @@ class HardwareEnvironment(environment_lib.Environment):
     """The in-process virtual bus (device 'virtual'), else None."""
     return self._hardware.get('bus')
 
+  @property
+  def simulated_robot(self):
+    """The simulation behind the virtual bus (device 'virtual'), else None."""
+    return self._hardware.get('simulation')
+
   def _recompile_physics(self):
     physics = getattr(self, '_physics', None)
     if physics:
@@ -130,10 +135,9 @@ def make_environment(
     torso_source: for a free-floating robot (D'Kitty) on a real bus: a
       callable returning the torso's (position, quaternion, linear
       velocity, angular velocity in the torso frame).
-    reset: 'scripted' (ROBEL's scripted reset; the default of the D'Claw's
-      valve tasks), 'move' (one blocking move; the default otherwise, until
-      the D'Kitty's stand-up sequence exists), 'manual' (a person places the
-      robot), or a procedure (see `resets`).
+    reset: 'scripted' (ROBEL's scripted resets; the default of the D'Claw's
+      valve tasks), 'move' (one blocking move; the default otherwise),
+      'manual' (a person places the robot), or a procedure (see `resets`).
     **environment_kwargs: forwarded to the environment.
 
   Returns:
@@ -178,10 +182,13 @@ def make_environment(
     )
 
   if reset is None:
-    # ROBEL scripts the reset of the D'Claw's object tasks only.
-    reset = 'scripted' if domain == 'dclaw' and auxiliary_joints else 'move'
-
-  reset_procedure = resets.make(reset, robot_config, domain)
+    # ROBEL scripts the D'Claw's object tasks' reset. The D'Kitty's scripted
+    # stand-up is opt-in: in simulation it gets up from a crouch but not
+    # from lying on its back (see `resets.DKittyScriptedReset`).
+    scripted = domain == 'dclaw' and auxiliary_joints
+    reset = 'scripted' if scripted else 'move'
+  if not free_floating:  # Checked before anything is opened.
+    reset_procedure = resets.make(reset, robot_config, domain)
   on_close = []
   if virtual:
     from robel_dm.hardware import sim_robot, virtual_bus  # noqa: PLC0415
@@ -196,6 +203,8 @@ def make_environment(
     device_path = server.device_path
     if free_floating:
       torso_source = simulation.torso_pose
+  if free_floating:
+    reset_procedure = resets.make(reset, robot_config, domain, torso_source)
   motor_ids = [m.id for m in robot_config.joints + tuple(auxiliary)]
   client = dynamixel.DynamixelClient(
     device_path, motor_ids, baud_rate=robot_config.baud_rate
@@ -216,6 +225,7 @@ def make_environment(
       clock = clock_lib.WallClock()
     hardware = {
       'bus': bus if virtual else None,
+      'simulation': simulation if virtual else None,
       'robot': robot,
       'auxiliary_joints': auxiliary_joints,
       'clock': clock,

@@ -225,7 +225,7 @@ class ManualReset:
     MoveReset()(robot, clock, joint_goals, auxiliary_goals)
 
 
-def make(name, robot_config, domain: str):
+def make(name, robot_config, domain: str, torso_source=None):
   """The reset procedure `name` for a robot.
 
   Args:
@@ -233,6 +233,7 @@ def make(name, robot_config, domain: str):
       signature of `MoveReset.__call__`), returned as is.
     robot_config: the robot's configuration (for motor groups).
     domain: 'dclaw' or 'dkitty'.
+    torso_source: the D'Kitty's torso pose (for its scripted reset).
 
   Raises:
     ValueError: for an unknown name or one the robot does not support.
@@ -250,10 +251,152 @@ def make(name, robot_config, domain: str):
         robot_config.group('middle'),
         robot_config.group('bottom'),
       )
+    if domain == 'dkitty' and torso_source is not None:
+      return DKittyScriptedReset(
+        torso_source,
+        robot_config.group('left'),
+        robot_config.group('right'),
+        robot_config.group('front'),
+        robot_config.group('back'),
+      )
     raise ValueError(
-      f"the scripted {domain} reset is not available yet; use reset='move' "
-      "or 'manual'"
+      f'the scripted {domain} reset needs the torso pose (a tracker)'
     )
   raise ValueError(
     f"unknown reset {name!r}; expected 'scripted', 'move' or 'manual'"
   )
+
+
+# ROBEL's scripted D'Kitty stand-up (robel_facts 4.5). Joint angles per pair
+# of legs (the group's two legs in ID order), rad; beyond the action ranges
+# on purpose (reset moves are not clipped to them).
+_TUCK_SPAN = 2.4
+_FOOT_SPAN = 2.5
+_INWARD_TUCK = np.array(
+  [0, _TUCK_SPAN, -_FOOT_SPAN, 0, -_TUCK_SPAN, _FOOT_SPAN]
+)
+_UPRIGHT_THRESHOLD = 0.9
+_STANDING_HEIGHT = 0.30  # m, torso height standing on robel_dm's model.
+_HEIGHT_TOLERANCE = 0.05  # m
+_MAX_STAND_ATTEMPTS = 5
+_MAX_FLIP_ATTEMPTS = 3
+_POSE_TOLERANCE = np.deg2rad(5.0)  # rad
+_POSE_STALL_TOLERANCE = np.deg2rad(0.1)  # rad per poll
+
+
+def _pair(triple) -> np.ndarray:
+  return np.tile(triple, 2)
+
+
+def _upright_and_height(torso_source) -> tuple[float, float]:
+  position, quaternion, _, _ = torso_source()
+  w, x, y, z = quaternion
+  # R[2, 2] of the torso's rotation: the cosine of its tilt.
+  return 1.0 - 2.0 * (x * x + y * y), float(position[2])
+
+
+class DKittyScriptedReset:
+  """ROBEL's D'Kitty stand-up sequence, bounded (robel_facts 4.5).
+
+  Needs the torso pose (a tracker, or the virtual bus's simulation). While
+  the robot is not standing: if upside down, flip it over; tuck the legs
+  under the body; stand up. Then the task's initial pose is moved to.
+  Standing means upright >= 0.9 at robel_dm's standing height (0.30 m;
+  ROBEL's tracker measured 0.35). On the simulated robot the sequence gets
+  up from a crouch, but ROBEL's flip does not right it from its back; after
+  5 attempts the reset fails with an error.
+  """
+
+  name = 'scripted'
+
+  def __init__(self, torso_source, left, right, front, back):
+    self._torso = torso_source
+    self._left, self._right = tuple(left), tuple(right)
+    self._front, self._back = tuple(front), tuple(back)
+
+  def standing(self) -> bool:
+    upright, height = _upright_and_height(self._torso)
+    return (
+      upright >= _UPRIGHT_THRESHOLD
+      and abs(height - _STANDING_HEIGHT) <= _HEIGHT_TOLERANCE
+    )
+
+  def __call__(self, robot, clock, joint_goals, auxiliary_goals) -> None:
+    robot.set_torque(True)
+    for attempt in range(1, _MAX_STAND_ATTEMPTS + 1):
+      if self.standing():
+        break
+      logging.info('stand-up attempt %d', attempt)
+      self._flip_if_upside_down(robot, clock)
+      self._tuck(robot, clock)
+      self._stand_up(robot, clock)
+    else:
+      if not self.standing():
+        upright, height = _upright_and_height(self._torso)
+        raise ResetError(
+          f"the D'Kitty did not stand up in {_MAX_STAND_ATTEMPTS} attempts "
+          f'(upright {upright:.2f}, torso height {height:.2f} m)'
+        )
+    MoveReset()(robot, clock, joint_goals, auxiliary_goals)
+
+  def _pose(self, robot, clock, groups: dict, seconds: float) -> None:
+    """Commands joint angles to groups of motors and waits (bounded)."""
+    for ids, angles in groups.items():
+      robot.write_unlimited_goals(ids, angles)
+    deadline = clock.now() + seconds
+    previous = None
+    while clock.now() < deadline:
+      clock.sleep_until(min(deadline, clock.now() + MOVE_POLL_INTERVAL))
+      robot.read()
+      errors = [
+        np.abs(robot.positions_of(ids) - angles).max()
+        for ids, angles in groups.items()
+      ]
+      if max(errors) <= _POSE_TOLERANCE:
+        return
+      if previous is not None and (
+        np.abs(robot.positions - previous).max() < _POSE_STALL_TOLERANCE
+      ):
+        return
+      previous = robot.positions.copy()
+
+  def _flatten(self, robot, clock) -> None:
+    left = _INWARD_TUCK.copy()
+    left[[0, 3]] = np.pi / 2
+    right = _INWARD_TUCK.copy()
+    right[[0, 3]] = -np.pi / 2
+    self._pose(robot, clock, {self._left: left, self._right: right}, 4.0)
+
+  def _flip_if_upside_down(self, robot, clock) -> None:
+    for _ in range(_MAX_FLIP_ATTEMPTS):
+      if _upright_and_height(self._torso)[0] >= 0:
+        return
+      self._flatten(robot, clock)
+      if _upright_and_height(self._torso)[0] >= 0:
+        return
+      self._pose(robot, clock, {
+        self._left: _pair([-np.pi / 4, -_TUCK_SPAN, _FOOT_SPAN]),
+        self._right: _pair([-5 * np.pi / 4, 0, 0]),
+      }, 4.0)  # fmt: skip
+      self._pose(robot, clock, {
+        self._left: _pair([np.pi / 2, 0, 0]),
+        self._right: _pair([-np.pi / 2, 0, 0]),
+      }, 4.0)  # fmt: skip
+
+  def _tuck(self, robot, clock) -> None:
+    self._flatten(robot, clock)
+    self._pose(robot, clock, {self._left: _INWARD_TUCK}, 4.0)
+    self._pose(robot, clock, {self._right: _INWARD_TUCK}, 4.0)
+
+  def _stand_up(self, robot, clock) -> None:
+    everything = self._left + self._right
+    order = np.argsort(everything)
+    standing = np.zeros(len(everything))
+    self._pose(robot, clock, {
+      self._back: _pair([0, _TUCK_SPAN, -_FOOT_SPAN])}, 4.0)  # fmt: skip
+    self._pose(robot, clock, {
+      self._front: _pair([0, -_TUCK_SPAN, _FOOT_SPAN])}, 4.0)  # fmt: skip
+    ids = tuple(np.asarray(everything)[order])
+    self._pose(robot, clock, {ids: standing}, 3.0)
+    self._pose(robot, clock, {ids: np.tile([0, np.pi / 6, -np.pi / 6], 4)}, 1.0)
+    self._pose(robot, clock, {ids: standing}, 3.0)

@@ -139,6 +139,25 @@ class HardwareRobot:
     self._client.write_goal_positions(motor_angles, self._joint_ids)
     return goals
 
+  def write_unlimited_goals(self, motor_ids, joint_angles) -> None:
+    """Goals for some joints without the action-range limits (resets).
+
+    Raises:
+      ValueError: for non-finite angles or unknown motors.
+    """
+    joint_angles = np.asarray(joint_angles, dtype=float)
+    if not np.all(np.isfinite(joint_angles)):
+      raise ValueError(f'non-finite joint goals {joint_angles.tolist()}')
+    motors = [self._joints[self._joint_ids.index(i)] for i in motor_ids]
+    self._client.write_goal_positions(
+      [m.to_motor(a) for m, a in zip(motors, joint_angles, strict=True)],
+      motor_ids,
+    )
+
+  def positions_of(self, motor_ids) -> np.ndarray:
+    """Last read joint angles of some joints, rad."""
+    return self.positions[[self._joint_ids.index(i) for i in motor_ids]]
+
   def write_auxiliary_goal(self, name: str, joint_angle: float) -> None:
     """Sends a goal to an auxiliary motor (e.g. the valve during a reset)."""
     motor = self._find_auxiliary(name)

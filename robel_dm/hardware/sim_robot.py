@@ -97,6 +97,10 @@ class SimulatedRobot:
           None,
         )
     self._nominal_gain = self._model.actuator_gainprm[:, 0].copy()
+    # A servo goes wherever it is told (within its joint's mechanical
+    # limits): the action range is the robot layer's business, and scripted
+    # resets command poses beyond it on purpose.
+    self._model.actuator_ctrllimited[:] = 0
     self._auxiliary_goals: dict[int, float] = {}  # dof -> goal, rad.
     self._root = task_instance.root_joint
     self._realtime = realtime
@@ -155,6 +159,9 @@ class SimulatedRobot:
         force = 0.0 if actuator is None else self._data.actuator_force[actuator]
         unit = table.MODELS.get(servo.model_number, ('', 2.69))[1]
         current = 1000.0 * force / _TORQUE_PER_AMPERE / motor.scale / unit
+        # The servo's firmware caps its current at the Current Limit.
+        limit = servo.get(table.CURRENT_LIMIT)
+        current = min(max(current, -limit), limit)
         servo.set_present(
           int(round(angle / table.RADIANS_PER_TICK)),
           int(round(velocity / table.RADIANS_PER_SECOND_PER_UNIT)),
