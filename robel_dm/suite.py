@@ -64,6 +64,7 @@ def load(
   device_path: str | None = None,
   robot_config=None,
   reset: str | None = None,
+  tracker=None,
 ) -> Environment:
   """Builds a task's environment.
 
@@ -83,6 +84,8 @@ def load(
       robot configuration; ROBEL's configuration of the domain by default.
     reset: with `device_path`: 'scripted', 'move' or 'manual' (see
       `robel_dm.hardware.resets`); the robot's default if None.
+    tracker: with `device_path`: a `robel_dm.hardware.tracking.TorsoTracker`
+      giving the D'Kitty's torso pose (and Orient/Walk targets).
 
   Returns:
     A `dm_env.Environment` (a `composer.Environment`).
@@ -106,8 +109,8 @@ def load(
   # 3.9999...): without this margin a 4 s limit would run 41 steps.
   time_limit -= _TIME_LIMIT_MARGIN
   if device_path is None:
-    if robot_config is not None or reset is not None:
-      raise ValueError('robot_config and reset need a device_path')
+    if robot_config is not None or reset is not None or tracker is not None:
+      raise ValueError('robot_config, reset and tracker need a device_path')
     return Environment(
       task_instance,
       time_limit=time_limit,
@@ -126,6 +129,7 @@ def load(
     task_kwargs=task_kwargs,
     seed=seed,
     reset=reset,
+    tracker=tracker,
     time_limit=time_limit,
     random_state=seed,
     **(environment_kwargs or {}),

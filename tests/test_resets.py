@@ -6,7 +6,7 @@ import pytest
 from robel_dm import suite
 from robel_dm.hardware import config as config_lib
 from robel_dm.hardware import control_table as table
-from robel_dm.hardware import resets, sim_robot
+from robel_dm.hardware import resets, sim_robot, tracking
 
 
 def _torque(bus):
@@ -192,5 +192,45 @@ def test_dkitty_that_cannot_get_up_fails_clearly_and_is_released():
     with pytest.raises(resets.ResetError, match='did not stand up'):
       env.reset()
     assert not any(_torque(env.virtual_bus).values())
+  finally:
+    env.close()
+
+
+def test_tracker_gives_the_torso_calibrates_at_reset_and_moves_the_target():
+  holder = {'now': 0.0}
+
+  def poses():
+    # A motion-capture stream of the virtual robot's torso (in a frame
+    # shifted by (5, -2) m) and of a target 1.5 m from the torso.
+    holder['now'] += 0.1
+    position, quaternion, _, _ = holder['env'].simulated_robot.torso_pose()
+    shift = np.array([5.0, -2.0, 0.0])
+    return {
+      'torso': tracking.Pose(position + shift, quaternion, holder['now']),
+      'goal': tracking.Pose(
+        position + shift + [1.5, 0, 0], [1, 0, 0, 0], holder['now']
+      ),
+    }
+
+  tracker = tracking.TorsoTracker(
+    tracking.SimulatedSource(poses), 'torso', target_body='goal',
+    clock=lambda: holder['now'],
+  )  # fmt: skip
+  env = suite.load(
+    'dkitty', 'walk_fixed', seed=0, device_path='virtual', tracker=tracker
+  )
+  holder['env'] = env
+  try:
+    timestep = env.reset()
+    # Calibrated at reset: the torso is at robel_dm's origin, whatever the
+    # tracker's frame; the target is where the tracker sees it.
+    assert timestep.observation['root_pos'] == pytest.approx(
+      np.zeros(3), abs=0.01
+    )
+    timestep = env.step(env.task.normalize_joint_targets(np.zeros(12)))
+    assert env.task.target == pytest.approx([1.5, 0.0], abs=0.02)
+    assert timestep.observation['target_error'] == pytest.approx(
+      [1.5, 0.0], abs=0.05
+    )
   finally:
     env.close()

@@ -69,6 +69,7 @@ class HardwareEnvironment(environment_lib.Environment):
       root_joint=hardware.get('root_joint'),
       joint_limits=hardware.get('joint_limits'),
       reset=hardware.get('reset'),
+      tracker=hardware.get('tracker'),
     )
 
   def _prepare_batching(self) -> None:
@@ -119,6 +120,7 @@ def make_environment(
   seed=None,
   torso_source=None,
   reset: str | None = None,
+  tracker=None,
   **environment_kwargs,
 ) -> HardwareEnvironment:
   """Connects `task` to a robot.
@@ -138,6 +140,10 @@ def make_environment(
     reset: 'scripted' (ROBEL's scripted resets; the default of the D'Claw's
       valve tasks), 'move' (one blocking move; the default otherwise),
       'manual' (a person places the robot), or a procedure (see `resets`).
+    tracker: a `tracking.TorsoTracker` for a free-floating robot: the torso
+      pose source (also on the virtual bus), recalibrated at every reset,
+      and the source of Orient/Walk targets if it tracks them. Closed with
+      the environment.
     **environment_kwargs: forwarded to the environment.
 
   Returns:
@@ -173,6 +179,8 @@ def make_environment(
       )
     auxiliary.append(motor)
   free_floating = task.root_joint is not None
+  if tracker is not None:
+    torso_source = tracker.torso_state
   virtual = device_path == VIRTUAL_DEVICE
   if free_floating and not virtual and torso_source is None:
     raise ValueError(
@@ -189,7 +197,7 @@ def make_environment(
     reset = 'scripted' if scripted else 'move'
   if not free_floating:  # Checked before anything is opened.
     reset_procedure = resets.make(reset, robot_config, domain)
-  on_close = []
+  on_close = [] if tracker is None else [tracker.close]
   if virtual:
     from robel_dm.hardware import sim_robot, virtual_bus  # noqa: PLC0415
 
@@ -201,7 +209,7 @@ def make_environment(
     server = virtual_bus.PtyBusServer(bus).start()
     on_close += [server.stop, simulation.close]
     device_path = server.device_path
-    if free_floating:
+    if free_floating and torso_source is None:
       torso_source = simulation.torso_pose
   if free_floating:
     reset_procedure = resets.make(reset, robot_config, domain, torso_source)
@@ -233,6 +241,7 @@ def make_environment(
       'root_joint': task.root_joint,
       'joint_limits': robot_config.limits,
       'reset': reset_procedure,
+      'tracker': tracker,
       'on_close': on_close,
     }
     _install_sigterm_handler()

@@ -39,6 +39,7 @@ class HardwarePhysics(mjcf.Physics):
     root_joint=None,
     joint_limits=None,
     reset=None,
+    tracker=None,
   ) -> None:
     """Connects the physics to the motors.
 
@@ -56,10 +57,24 @@ class HardwarePhysics(mjcf.Physics):
       joint_limits: joint name -> (low, high) goal limits from the robot
         configuration, narrowing the action range.
       reset: the reset procedure (see `resets`); a blocking move if None.
+      tracker: a `tracking.TorsoTracker`, or None. Its origin is
+        recalibrated after every reset (as ROBEL did), and its target and
+        heading bodies, if any, are offered to the task as
+        `tracked_target` / `tracked_heading` (callables returning x, y).
     """
     self._robot = robot
     self._clock = clock
     self._reset = reset or resets.MoveReset()
+    self._tracker = tracker
+    has = lambda body: tracker is not None and body is not None  # noqa: E731
+    self.tracked_target = (
+      tracker.target_position if has(getattr(tracker, 'target_body', None))
+      else None
+    )  # fmt: skip
+    self.tracked_heading = (
+      tracker.heading_position if has(getattr(tracker, 'heading_body', None))
+      else None
+    )  # fmt: skip
     self._period = control_timestep
     self._substeps = max(1, round(control_timestep / self.model.opt.timestep))
     self._pending_substeps = 0
@@ -151,6 +166,9 @@ class HardwarePhysics(mjcf.Physics):
       held = [robot.auxiliary_id(name) for name in self.auxiliary_goals]
       if held:
         robot.set_torque(True, held)
+      if self._tracker is not None:
+        # The robot stands where the episode starts: that is the origin.
+        self._tracker.calibrate_origin()
       robot.check_health(force=True)
       self._read_motors()
     except BaseException:

@@ -125,6 +125,9 @@ class OrientTask(base.RobelTask):
     upright_term, falling_term, self._failed = self._kitty.update(
       self._sensed_qpos, self._sensed_qvel
     )
+    tracked = getattr(physics, 'tracked_target', None)
+    if tracked is not None:  # On a robot with a tracked target.
+      self._target[:] = tracked()
     torso = self._kitty.torso
     facing = torso.facing
     to_target = self._target - torso.position[:2]

@@ -124,9 +124,18 @@ class WalkTask(base.RobelTask):
     upright_term, falling_term, self._failed = self._kitty.update(
       self._sensed_qpos, self._sensed_qvel
     )
+    tracked = getattr(physics, 'tracked_target', None)
+    if tracked is not None:  # On a robot with a tracked target.
+      self._target[:] = tracked()
     torso = self._kitty.torso
     target_error = self._target - torso.position[:2]
-    heading = dkitty_common.cosine(torso.facing, target_error)
+    tracked_heading = getattr(physics, 'tracked_heading', None)
+    towards = (
+      target_error
+      if tracked_heading is None
+      else tracked_heading() - torso.position[:2]
+    )
+    heading = dkitty_common.cosine(torso.facing, towards)
     self._target_features[:] = (heading, *self._target, *target_error)
 
     distance = base.norm(target_error)
