@@ -47,6 +47,12 @@ _DEVICE_PATH = flags.DEFINE_string(
 _ROBOT_CONFIG = flags.DEFINE_string(
   'robot_config', None, 'Robot configuration file (JSON) for --device_path.'
 )
+_RESET = flags.DEFINE_enum(
+  'reset',
+  None,
+  ['scripted', 'move', 'manual'],
+  "With --device_path: how the robot is reset (default: the robot's).",
+)
 
 
 def parse_task_kwargs(text: str) -> dict[str, Any]:
@@ -91,6 +97,7 @@ def evaluate(
   log_every: int = 0,
   device_path: str | None = None,
   robot_config: str | None = None,
+  reset: str | None = None,
 ) -> dict[str, Any]:
   """Runs `episodes` episodes and returns the metrics.
 
@@ -104,6 +111,7 @@ def evaluate(
     log_every: log progress every this many episodes (0: never).
     device_path: run on a robot (see `suite.load`); None simulates.
     robot_config: robot configuration file for `device_path`.
+    reset: reset procedure for `device_path` (see `suite.load`).
 
   Returns:
     A JSON-serializable dict of per-episode records and summary metrics.
@@ -120,6 +128,7 @@ def evaluate(
     task_kwargs=task_kwargs,
     device_path=device_path,
     robot_config=robot_config,
+    reset=reset,
   )
   try:
     act = policies.make_policy(policy, env, seed)
@@ -229,6 +238,7 @@ def main(argv):
       log_every=max(1, _EPISODES.value // 10),
       device_path=_DEVICE_PATH.value,
       robot_config=_ROBOT_CONFIG.value,
+      reset=_RESET.value,
     )
   except (ValueError, RuntimeError) as error:
     print(f'error: {error}', file=sys.stderr)
