@@ -150,9 +150,22 @@ def test_dkitty_stand_up_sequence_runs_and_ends_upright(monkeypatch):
     after_stand_up.append(resets._upright_and_height(self._torso))  # noqa: SLF001
 
   monkeypatch.setattr(resets.DKittyScriptedReset, '_stand_up', spy)
-  env = suite.load(
-    'dkitty', 'stand_fixed', seed=0, device_path='virtual', reset='scripted'
+  # The torso comes from a tracker fed with the simulated torso.
+  holder = {'now': 0.0}
+
+  def poses():
+    holder['now'] += 0.01
+    position, quaternion, _, _ = holder['env'].simulated_robot.torso_pose()
+    return {'torso': tracking.Pose(position, quaternion, holder['now'])}
+
+  tracker = tracking.TorsoTracker(
+    tracking.SimulatedSource(poses), 'torso', clock=lambda: holder['now']
   )
+  env = suite.load(
+    'dkitty', 'stand_fixed', seed=0, device_path='virtual', reset='scripted',
+    tracker=tracker,
+  )  # fmt: skip
+  holder['env'] = env
   try:
     env.reset()
     # The robot started crouched (not standing): the tuck and stand-up
@@ -232,5 +245,22 @@ def test_tracker_gives_the_torso_calibrates_at_reset_and_moves_the_target():
     assert timestep.observation['target_error'] == pytest.approx(
       [1.5, 0.0], abs=0.05
     )
+  finally:
+    env.close()
+
+
+def test_dkitty_manual_reset_waits_until_the_robot_is_stood_up():
+  env = suite.load(
+    'dkitty', 'walk_fixed', seed=0, device_path='virtual', reset='manual'
+  )
+  try:
+    env.reset()  # Already standing: the wait ends after 6 good checks.
+    simulation = env.simulated_robot
+    physics = simulation.physics
+    root = int(physics.bind(env.task.root_joint).qposadr)
+    physics.data.qpos[root : root + 7] = [0, 0, 0.15, 0, 1, 0, 0]  # Fallen.
+    simulation.advance(1.0)
+    with pytest.raises(resets.ResetError, match='not stood up within'):
+      env.reset()
   finally:
     env.close()

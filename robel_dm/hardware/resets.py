@@ -42,6 +42,14 @@ _MAX_CLAW_ATTEMPTS = 4  # The first try and ROBEL's 3 retries.
 _DISENTANGLE_STEP = 0.75  # s
 _DISENTANGLE_TOP_POSE = np.pi / 4  # rad, top joints while disentangling.
 
+# ROBEL's "manual-auto" D'Kitty reset: poll the tracker (s), require this
+# many consecutive good checks, then wait (s); robel_dm gives up after the
+# timeout (s).
+_MANUAL_POLL_INTERVAL = 0.1
+_MANUAL_GOOD_CHECKS = 5
+_MANUAL_SETTLE = 1.0
+_MANUAL_TIMEOUT = 120.0
+
 
 class ResetError(RuntimeError):
   """A reset failed; `motor_ids` names the motors that did not get there."""
@@ -207,22 +215,55 @@ class DClawScriptedReset:
 class ManualReset:
   """Releases the motors, waits for a person to place the robot, then moves.
 
-  `wait` is called with instructions and returns when the robot is in place
-  (by default it asks for Enter on the terminal).
+  Without a torso source, `wait` is called with instructions and returns
+  when the robot is in place (by default it asks for Enter on the
+  terminal). With one (a D'Kitty with a tracker), the reset instead waits
+  until the torso has been upright and no higher than standing for more
+  than 5 checks 0.1 s apart, then 1 s more (ROBEL's ManualAuto), and fails
+  after `timeout` seconds.
   """
 
   name = 'manual'
 
-  def __init__(self, wait: Callable[[str], object] = input):
+  def __init__(
+    self,
+    wait: Callable[[str], object] = input,
+    torso_source=None,
+    timeout: float = _MANUAL_TIMEOUT,
+  ):
     self._wait = wait
+    self._torso = torso_source
+    self._timeout = timeout
 
   def __call__(self, robot, clock, joint_goals, auxiliary_goals) -> None:
     robot.set_torque(False)
-    self._wait(
+    message = (
       'Motors released. Put the robot near its initial pose, keep clear, and '
       'press Enter to continue.'
     )
+    if self._torso is None:
+      self._wait(message)
+    else:
+      logging.warning('Motors released: stand the robot up.')
+      self._wait_until_upright(clock)
     MoveReset()(robot, clock, joint_goals, auxiliary_goals)
+
+  def _wait_until_upright(self, clock) -> None:
+    deadline = clock.now() + self._timeout
+    good = 0
+    while good <= _MANUAL_GOOD_CHECKS:
+      if clock.now() > deadline:
+        upright, height = _upright_and_height(self._torso)
+        raise ResetError(
+          f'manual reset: the robot was not stood up within {self._timeout} s '
+          f'(upright {upright:.2f}, torso height {height:.2f} m)'
+        )
+      clock.sleep_until(clock.now() + _MANUAL_POLL_INTERVAL)
+      upright, height = _upright_and_height(self._torso)
+      upright_enough = upright >= _UPRIGHT_THRESHOLD
+      low_enough = height <= _STANDING_HEIGHT + _HEIGHT_TOLERANCE
+      good = good + 1 if upright_enough and low_enough else 0
+    clock.sleep_until(clock.now() + _MANUAL_SETTLE)
 
 
 def make(name, robot_config, domain: str, torso_source=None):
@@ -243,7 +284,7 @@ def make(name, robot_config, domain: str, torso_source=None):
   if name == 'move':
     return MoveReset()
   if name == 'manual':
-    return ManualReset()
+    return ManualReset(torso_source=torso_source)
   if name == 'scripted':
     if domain == 'dclaw':
       return DClawScriptedReset(
