@@ -223,8 +223,10 @@ class RobelTask(composer.Task):
     terms.enabled = False
     self._task_observables[REWARD_TERMS] = terms
 
-  def _feature_span(self, first: str, last: str) -> np.ndarray:
-    """A view of the features from `first` to `last` (FEATURES order)."""
+  def feature_span(self, first: str, last: str) -> np.ndarray:
+    """A writable view of the features from `first` to `last` (FEATURES
+    order), for the code that fills them (the task, or parts it is built
+    from)."""
     start = self._feature_offsets[first]
     stop = self._feature_offsets[last] + self.FEATURES[last]
     return self._feature_buffer[start:stop]

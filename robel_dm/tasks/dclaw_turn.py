@@ -137,7 +137,7 @@ class TurnTask(base.RobelTask):
     )
     self._claw_qpos_feature = self._features['claw_qpos']
     self._claw_qvel_feature = self._features['claw_qvel']
-    self._object_features = self._feature_span('object_x', 'object_qvel')
+    self._object_features = self.feature_span('object_x', 'object_qvel')
     self._target_error_feature = self._features['target_error']
     self._diff = np.zeros(len(claw.joints))
 

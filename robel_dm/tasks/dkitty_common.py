@@ -212,10 +212,10 @@ class KittyParts:
       'root_joint': self.scene.root_joint,
     }
 
-  def bind_features(self, torso_span: np.ndarray, joint_span: np.ndarray):
-    """Gives the feature views to fill: the torso's and the legs' (24)."""
-    self._torso_features = torso_span
-    self._joint_features = joint_span
+  def bind_features(self, task) -> None:
+    """Takes the task's torso and leg feature views, which `update` fills."""
+    self._torso_features = task.feature_span('upright', 'root_angular_vel')
+    self._joint_features = task.feature_span('kitty_qpos', 'kitty_qvel')
 
   def after_compile(self, physics: mjcf.Physics) -> None:
     self.torso.after_compile(physics)

@@ -89,11 +89,8 @@ class OrientTask(base.RobelTask):
       observation_keys=observation_keys,
       action_bounds=action_bounds,
     )
-    self._kitty.bind_features(
-      self._feature_span('upright', 'root_angular_vel'),
-      self._feature_span('kitty_qpos', 'kitty_qvel'),
-    )
-    self._facing_features = self._feature_span('current_facing', 'angle_error')
+    self._kitty.bind_features(self)
+    self._facing_features = self.feature_span('current_facing', 'angle_error')
 
   @property
   def target(self) -> np.ndarray:

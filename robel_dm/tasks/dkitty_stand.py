@@ -82,10 +82,7 @@ class StandTask(base.RobelTask):
       observation_keys=observation_keys,
       action_bounds=action_bounds,
     )
-    self._kitty.bind_features(
-      self._feature_span('upright', 'root_angular_vel'),
-      self._feature_span('kitty_qpos', 'kitty_qvel'),
-    )
+    self._kitty.bind_features(self)
     self._pose_error_feature = self._features['pose_error']
     self._joint_weights = np.full(12, 1 / 12)  # Means as dot products.
 

@@ -89,11 +89,8 @@ class WalkTask(base.RobelTask):
       observation_keys=observation_keys,
       action_bounds=action_bounds,
     )
-    self._kitty.bind_features(
-      self._feature_span('upright', 'root_angular_vel'),
-      self._feature_span('kitty_qpos', 'kitty_qvel'),
-    )
-    self._target_features = self._feature_span('heading', 'target_error')
+    self._kitty.bind_features(self)
+    self._target_features = self.feature_span('heading', 'target_error')
 
   @property
   def target(self) -> np.ndarray:
