@@ -101,6 +101,10 @@ def load(
   try:
     task_instance = tasks[task](**(task_kwargs or {}))
   except TypeError as error:
+    # Only a wrong argument is the caller's mistake; re-raise anything else.
+    message = str(error)
+    if 'keyword argument' not in message:
+      raise
     raise ValueError(f'bad task_kwargs for {domain}/{task}: {error}') from error
   if time_limit is None:
     time_limit = task_instance.time_limit

@@ -66,6 +66,29 @@ def _address_index(addresses) -> slice | np.ndarray:
   return addresses
 
 
+class CachedArray(observable.Observable):
+  """An observable of an array the task keeps up to date.
+
+  Each reading is a fresh copy (`ndarray.copy`, called without a Python
+  frame in between), so readings never share memory with the task or with
+  each other.
+  """
+
+  def __init__(self, value: np.ndarray):
+    super().__init__(
+      update_interval=1,
+      buffer_size=None,
+      delay=None,
+      aggregator=None,
+      corruptor=None,
+    )
+    self._value = value
+
+  def _callable(self, physics):
+    del physics
+    return self._value.copy
+
+
 class RobelTask(composer.Task):
   """Base class of robel_dm tasks (one level below `composer.Task`).
 
@@ -234,7 +257,7 @@ class RobelTask(composer.Task):
   def _add_observable(
     self, name: str, value: np.ndarray, enabled: bool = True
   ) -> None:
-    obs = observable.Generic(lambda physics: value)
+    obs = CachedArray(value)
     obs.enabled = enabled
     self._task_observables[name] = obs
 
