@@ -105,7 +105,7 @@ def control_loop(device_path: str, robot: str, steps: int) -> dict:
     read = client.read_state = _Timed(client.read_state)
     write = client.write_goal_positions = _Timed(client.write_goal_positions)
     health = client.sync_read_register = _Timed(client.sync_read_register)
-    clock = physics._clock  # noqa: SLF001
+    clock = physics.clock
     sleep = clock.sleep_until = _Timed(clock.sleep_until)
     exchanges = []
     original_read = physics._read_motors  # noqa: SLF001

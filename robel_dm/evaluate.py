@@ -187,6 +187,7 @@ def evaluate(
     'steps_per_second': total_steps / step_seconds
     if step_seconds
     else math.nan,
+    'device_path': device_path,
     'records': records,
   }
 

@@ -11,7 +11,7 @@ from dynamixel_sdk import port_handler
 import numpy as np
 import pytest
 
-from robel_dm import suite
+from robel_dm import evaluate, suite
 from robel_dm.hardware import config as config_lib
 from robel_dm.hardware import control_table as table
 from robel_dm.hardware import dynamixel, virtual_bus
@@ -159,7 +159,7 @@ def test_ctrl_c_during_a_step_releases_the_motors(monkeypatch):
   bus = env.virtual_bus
   try:
     env.reset()
-    clock = env.physics._clock  # noqa: SLF001
+    clock = env.physics.clock
 
     def interrupted(deadline):
       raise KeyboardInterrupt
@@ -333,3 +333,12 @@ def test_hardware_reset_moves_to_the_initial_pose_without_simulated_settling():
       assert env.physics.data.time == 0.0
   finally:
     env.close()
+
+
+def test_evaluation_runs_on_the_virtual_bus():
+  results = evaluate.evaluate(
+    'dclaw', 'pose_fixed', episodes=2, policy='reference', device_path='virtual'
+  )
+  assert results['device_path'] == 'virtual'
+  assert results['success_rate'] == 1.0
+  assert [record['steps'] for record in results['records']] == [80, 80]

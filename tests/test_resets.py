@@ -147,7 +147,7 @@ def test_dkitty_stand_up_sequence_runs_and_ends_upright(monkeypatch):
 
   def spy(self, robot, clock):
     original(self, robot, clock)
-    after_stand_up.append(resets._upright_and_height(self._torso))  # noqa: SLF001
+    after_stand_up.append(resets.upright_and_height(self._torso))  # noqa: SLF001
 
   monkeypatch.setattr(resets.DKittyScriptedReset, '_stand_up', spy)
   # The torso comes from a tracker fed with the simulated torso.

@@ -109,6 +109,11 @@ class HardwarePhysics(mjcf.Physics):
   def robot(self) -> robot_lib.HardwareRobot:
     return self._robot
 
+  @property
+  def clock(self) -> clock_lib.Clock:
+    """What paces the control loop (wall or simulated time)."""
+    return self._clock
+
   @contextlib.contextmanager
   def reset_context(self):
     # While the task sets up an episode, simulated settling steps must not

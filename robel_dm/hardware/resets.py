@@ -253,13 +253,13 @@ class ManualReset:
     good = 0
     while good <= _MANUAL_GOOD_CHECKS:
       if clock.now() > deadline:
-        upright, height = _upright_and_height(self._torso)
+        upright, height = upright_and_height(self._torso)
         raise ResetError(
           f'manual reset: the robot was not stood up within {self._timeout} s '
           f'(upright {upright:.2f}, torso height {height:.2f} m)'
         )
       clock.sleep_until(clock.now() + _MANUAL_POLL_INTERVAL)
-      upright, height = _upright_and_height(self._torso)
+      upright, height = upright_and_height(self._torso)
       upright_enough = upright >= _UPRIGHT_THRESHOLD
       low_enough = height <= _STANDING_HEIGHT + _HEIGHT_TOLERANCE
       good = good + 1 if upright_enough and low_enough else 0
@@ -329,7 +329,8 @@ def _pair(triple) -> np.ndarray:
   return np.tile(triple, 2)
 
 
-def _upright_and_height(torso_source) -> tuple[float, float]:
+def upright_and_height(torso_source) -> tuple[float, float]:
+  """The torso's uprightness (cosine of its tilt) and height, m."""
   position, quaternion, _, _ = torso_source()
   w, x, y, z = quaternion
   # R[2, 2] of the torso's rotation: the cosine of its tilt.
@@ -356,7 +357,7 @@ class DKittyScriptedReset:
     self._front, self._back = tuple(front), tuple(back)
 
   def standing(self) -> bool:
-    upright, height = _upright_and_height(self._torso)
+    upright, height = upright_and_height(self._torso)
     return (
       upright >= _UPRIGHT_THRESHOLD
       and abs(height - _STANDING_HEIGHT) <= _HEIGHT_TOLERANCE
@@ -373,7 +374,7 @@ class DKittyScriptedReset:
       self._stand_up(robot, clock)
     else:
       if not self.standing():
-        upright, height = _upright_and_height(self._torso)
+        upright, height = upright_and_height(self._torso)
         raise ResetError(
           f"the D'Kitty did not stand up in {_MAX_STAND_ATTEMPTS} attempts "
           f'(upright {upright:.2f}, torso height {height:.2f} m)'
@@ -410,10 +411,10 @@ class DKittyScriptedReset:
 
   def _flip_if_upside_down(self, robot, clock) -> None:
     for _ in range(_MAX_FLIP_ATTEMPTS):
-      if _upright_and_height(self._torso)[0] >= 0:
+      if upright_and_height(self._torso)[0] >= 0:
         return
       self._flatten(robot, clock)
-      if _upright_and_height(self._torso)[0] >= 0:
+      if upright_and_height(self._torso)[0] >= 0:
         return
       self._pose(robot, clock, {
         self._left: _pair([-np.pi / 4, -_TUCK_SPAN, _FOOT_SPAN]),
