@@ -185,8 +185,10 @@ def make_environment(
   if free_floating and not virtual and torso_source is None:
     raise ValueError(
       f'{domain}/{task_name} needs the torso pose (upright, heading, '
-      'position), which needs a motion tracker; tracker support comes with '
-      "hardware part 2. Use device_path='virtual' to run on the simulated bus."
+      'position) from a motion tracker: pass tracker= (a '
+      'robel_dm.hardware.tracking.TorsoTracker, e.g. on a NatNet stream; '
+      "see docs/bringup.md), or use device_path='virtual' for the simulated "
+      'bus.'
     )
 
   if reset is None:
