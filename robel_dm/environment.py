@@ -14,7 +14,7 @@ other configuration composer's own loop and updater run unchanged.
 import collections
 
 from dm_control import composer
-from dm_control.composer.observation import updater
+from dm_control.composer.observation import observable, updater
 from dm_control.rl import control
 import dm_env
 import mujoco
@@ -23,16 +23,36 @@ import numpy as np
 _SUBSTEP_HOOKS = ('before_substep', 'after_substep')
 
 
+class CachedArray(observable.Observable):
+  """An observable of an array its owner (a task) keeps up to date.
+
+  Each reading is a fresh copy (`ndarray.copy`, called without a Python
+  frame in between), so readings never share memory with the owner or with
+  each other, and the lean updater below needs no second copy.
+  """
+
+  def __init__(self, value: np.ndarray):
+    super().__init__(
+      update_interval=1,
+      buffer_size=None,
+      delay=None,
+      aggregator=None,
+      corruptor=None,
+    )
+    self.value = value
+
+  def _callable(self, physics):
+    del physics
+    return self.value.copy
+
+
 def _fresh_copy(enabled) -> bool:
   """Whether an observable's readings are new arrays of its spec's dtype."""
-  # Imported here to keep the environment independent of the tasks package.
-  from robel_dm.tasks import base  # noqa: PLC0415
-
   observable_ = enabled.observable
   return (
-    isinstance(observable_, base.CachedArray)
+    isinstance(observable_, CachedArray)
     and observable_.corruptor is None
-    and observable_._value.dtype == enabled.buffer.dtype  # noqa: SLF001
+    and observable_.value.dtype == enabled.buffer.dtype
   )
 
 

@@ -6,7 +6,6 @@ from dm_control.utils import containers
 FIXED = 'fixed'
 RANDOM = 'random'
 RANDOM_DYNAMICS = 'random_dynamics'
-TAGS = (FIXED, RANDOM, RANDOM_DYNAMICS)
 
 DCLAW = containers.TaggedTasks()
 DKITTY = containers.TaggedTasks()

@@ -19,7 +19,7 @@ from dm_control.composer.observation import observable
 from dm_env import specs
 import numpy as np
 
-from robel_dm import constants, randomization
+from robel_dm import constants, environment, randomization
 
 # Names of the signal observables every task provides.
 SCORE = 'score'
@@ -64,29 +64,6 @@ def _address_index(addresses) -> slice | np.ndarray:
   ):
     return slice(int(addresses[0]), int(addresses[-1]) + 1)
   return addresses
-
-
-class CachedArray(observable.Observable):
-  """An observable of an array the task keeps up to date.
-
-  Each reading is a fresh copy (`ndarray.copy`, called without a Python
-  frame in between), so readings never share memory with the task or with
-  each other.
-  """
-
-  def __init__(self, value: np.ndarray):
-    super().__init__(
-      update_interval=1,
-      buffer_size=None,
-      delay=None,
-      aggregator=None,
-      corruptor=None,
-    )
-    self._value = value
-
-  def _callable(self, physics):
-    del physics
-    return self._value.copy
 
 
 class RobelTask(composer.Task):
@@ -257,7 +234,7 @@ class RobelTask(composer.Task):
   def _add_observable(
     self, name: str, value: np.ndarray, enabled: bool = True
   ) -> None:
-    obs = CachedArray(value)
+    obs = environment.CachedArray(value)
     obs.enabled = enabled
     self._task_observables[name] = obs
 
