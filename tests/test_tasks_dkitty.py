@@ -152,7 +152,8 @@ def _orient_expected(upright, angle_error, xy):
     'falling': -500.0 * (upright < 0.9),
     'alignment_error_cost': -4 * a,
     'center_distance_cost': -4 * c,
-    'bonus_small': 5.0 * (int(a < 0.26) + int(upright > 0.96)),
+    # ROBEL's `+` of two boolean arrays is a logical OR: 0 or 5, never 10.
+    'bonus_small': 5.0 * ((a < 0.26) or (upright > 0.96)),
     'bonus_big': 10.0 * (a < 0.087) * (upright > 0.96),
   }
   return terms, 1 - a / np.pi
@@ -165,7 +166,7 @@ def _walk_expected(upright, heading, distance):
     'falling': -500.0 * (upright < 0.9),
     'target_dist_cost': -4 * d,
     'heading': 2 * (h - 0.9) / 0.1,
-    'bonus_small': 5.0 * (int(d < 0.5) + int(h > 0.9)),
+    'bonus_small': 5.0 * ((d < 0.5) or (h > 0.9)),
     'bonus_big': 10.0 * (d < 0.5) * (h > 0.9),
   }
   return terms, -d
@@ -248,7 +249,7 @@ def test_stand_terms_with_random_legs(kitty_envs):
 # tilt axis and angle. The torso faces along yaw + pi/2 for tilts < 90 deg.
 _ORIENT_STATES = [
   ((0.0, 0.0), np.pi, 'x', 0.0),  # Facing the target: both bonuses.
-  ((0.0, 0.0), np.pi + 0.2, 'y', 0.25),  # a 0.2, u 0.969: small 10.
+  ((0.0, 0.0), np.pi + 0.2, 'y', 0.25),  # a 0.2, u 0.969: small 5.
   ((0.0, 0.0), np.pi - 0.05, 'x', 0.3),  # u 0.955: small 5, no big.
   ((0.0, 0.0), np.pi - 0.08, 'y', 0.2),  # a 0.08 < 0.087: both bonuses.
   ((0.0, 0.0), np.pi + 0.09, 'y', 0.0),  # a 0.09 > 0.087: small only.
@@ -312,6 +313,44 @@ def test_walk_terms_on_hand_built_states(kitty_envs):
     assert float(_signal(env, 'heading')[0]) == pytest.approx(heading)
     np.testing.assert_allclose(_signal(env, 'target_error'), error, atol=1e-12)
     np.testing.assert_allclose(_signal(env, 'target_pos'), target, atol=1e-12)
+
+
+# The small bonus pays 5 when either condition holds and never 10 (ROBEL's
+# logical OR); exact values, not the formula above. Orient: yaw offset from
+# facing the target (= angle error), tilt about the torso's y axis (keeps
+# the facing direction); Walk: torso xy and yaw.
+_ORIENT_BONUSES = [
+  (0.0, 0.0, 5.0, 10.0),  # a 0, u 1: both conditions and the big bonus.
+  (0.2, 0.0, 5.0, 0.0),  # a 0.2 < 0.26 and u 1 > 0.96: still 5.
+  (0.2, 0.35, 5.0, 0.0),  # u 0.939: the angle alone.
+  (0.5, 0.0, 5.0, 0.0),  # a 0.5: uprightness alone.
+  (0.5, 0.35, 0.0, 0.0),  # Neither.
+]
+_WALK_BONUSES = [
+  ((0.0, 1.7), 0.0, 5.0, 10.0),  # Near (0.3 m) and facing: both.
+  ((0.3, 1.8), -np.pi / 2, 5.0, 0.0),  # Near, facing away.
+  ((0.0, 0.0), 0.0, 5.0, 0.0),  # Facing, 2 m away.
+  ((0.0, 0.0), np.pi / 2, 0.0, 0.0),  # Neither.
+]
+
+
+def test_orient_small_bonus_is_a_logical_or(kitty_envs):
+  env = kitty_envs['orient']
+  env.reset()
+  for offset, tilt, small, big in _ORIENT_BONUSES:
+    _set_state(env, [0.0, 0.0, 0.3], _pose(np.pi + offset, 'y', tilt))
+    assert float(_signal(env, 'angle_error')[0]) == pytest.approx(offset)
+    terms = env.task.reward_terms
+    assert (terms['bonus_small'], terms['bonus_big']) == (small, big)
+
+
+def test_walk_small_bonus_is_a_logical_or(kitty_envs):
+  env = kitty_envs['walk']
+  env.reset()
+  for xy, yaw, small, big in _WALK_BONUSES:
+    _set_state(env, [*xy, 0.3], _pose(yaw))
+    terms = env.task.reward_terms
+    assert (terms['bonus_small'], terms['bonus_big']) == (small, big)
 
 
 def _expected_from_physics(env, family):

@@ -136,7 +136,10 @@ class OrientTask(base.RobelTask):
 
     upright = torso.upright
     upright_bonus = upright > _BONUS_UPRIGHT
-    small = _BONUS_SMALL * ((angle_error < _BONUS_SMALL_ANGLE) + upright_bonus)
+    # Either condition pays the small bonus once (ROBEL's logical OR).
+    small = (
+      _BONUS_SMALL if angle_error < _BONUS_SMALL_ANGLE or upright_bonus else 0.0
+    )
     big = (
       _BONUS_BIG if angle_error < _BONUS_BIG_ANGLE and upright_bonus else 0.0
     )
@@ -147,7 +150,7 @@ class OrientTask(base.RobelTask):
       falling_term,
       -_ALIGNMENT_WEIGHT * angle_error,
       -_CENTER_DISTANCE_WEIGHT * base.norm(torso.position[:2]),
-      float(small),
+      small,
       big,
     )
 

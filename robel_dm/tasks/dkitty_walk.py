@@ -137,7 +137,8 @@ class WalkTask(base.RobelTask):
 
     distance = base.norm(target_error)
     near, facing = distance < _BONUS_DISTANCE, heading > _HEADING_THRESHOLD
-    small = _BONUS_SMALL * (near + facing)
+    # Either condition pays the small bonus once (ROBEL's logical OR).
+    small = _BONUS_SMALL if near or facing else 0.0
     big = _BONUS_BIG if near and facing else 0.0
     self._score[...] = -distance
     self._success[...] = big > 0
@@ -148,7 +149,7 @@ class WalkTask(base.RobelTask):
       _HEADING_WEIGHT
       * (heading - _HEADING_THRESHOLD)
       / (1 - _HEADING_THRESHOLD),
-      float(small),
+      small,
       big,
     )
 
