@@ -365,6 +365,36 @@ def test_random_pose_goal_oscillates_slowly_inside_the_pose_box(pose_task_id):
   assert not np.array_equal(starts[0], starts[1])
 
 
+@pytest.mark.parametrize('pose_task_id', _POSE_RANDOM_TASKS,
+                         ids=_ids(_POSE_RANDOM_TASKS))  # fmt: skip
+def test_random_pose_goal_has_one_frequency_per_joint(pose_task_id):
+  # ROBEL draws w_j ~ U(0.5, 2) rad/s for each of the nine joints and caps
+  # each joint's amplitude at (pi/6) / w_j: the goal traces a Lissajous
+  # curve, each joint no faster than 30 deg/s.
+  env = suite.load(*pose_task_id, seed=1)
+  max_speed = np.pi / 6
+  for episode in range(200):
+    env.reset()
+    frequency, amplitude = env.task.goal_frequency, env.task.goal_amplitude
+    assert frequency.shape == (9,)
+    assert len(set(frequency.tolist())) == 9  # Nine different frequencies.
+    assert np.all((frequency >= 0.5) & (frequency <= 2.0))
+    assert np.all(amplitude * frequency <= max_speed + 1e-12)
+    if episode >= 5:
+      continue
+    # The goal follows center + A_j sin(w_j t) joint by joint.
+    center = env.task.goal
+    goal = center
+    for step in range(1, env.task.episode_steps + 1):
+      env.step(env.task.normalize_joint_targets(center))
+      time = step * env.control_timestep()
+      expected = center + amplitude * np.sin(frequency * time)
+      np.testing.assert_allclose(env.task.goal, expected, atol=1e-9)
+      speed = np.abs(env.task.goal - goal) / env.control_timestep()
+      assert np.all(speed <= max_speed + 1e-9)
+      goal = env.task.goal
+
+
 def test_fixed_valve_tasks_start_at_zero():
   for name, goal, velocity in (('turn_fixed', np.pi, 0.0),
                                ('screw_fixed', 0.0, 0.5)):  # fmt: skip

@@ -20,9 +20,13 @@ _POINTS_ERROR_SCALE = np.pi / 4
 # joint_vel_cost penalizes joints at least this fast, rad/s, with this weight.
 _FAST_JOINT_SPEED = np.pi
 _JOINT_VEL_COST_WEIGHT = 0.1
-# A moving goal oscillates at an angular frequency in this range, rad/s, and
-# its amplitude is cut so the goal never moves faster than this, rad/s.
-_GOAL_FREQUENCY = distributions.Uniform(0.5, 2.0)
+# A moving goal oscillates each joint at its own angular frequency, drawn
+# from this range, rad/s, and cuts each joint's amplitude so that no joint's
+# goal moves faster than _MAX_GOAL_SPEED, rad/s.
+_NUM_JOINTS = 9
+_GOAL_FREQUENCY = distributions.Uniform(
+  np.full(_NUM_JOINTS, 0.5), np.full(_NUM_JOINTS, 2.0)
+)
 _MAX_GOAL_SPEED = np.pi / 6
 
 # Joint speed of the reference controller's commands, rad/s: below the 1 rad/s
@@ -65,10 +69,12 @@ class PoseTask(base.RobelTask):
     Args:
       initial_pose: 9 joint angles (or a Variation of them) to start from.
       goal_pose: 9 joint angles (or a Variation) of the goal.
-      goal_frequency: None for a static goal. Otherwise an angular frequency
-        (rad/s, or a Variation): the claw starts halfway between
-        `initial_pose` and `goal_pose` and the goal oscillates between them
-        as ROBEL's PoseRandom does, capped at `_MAX_GOAL_SPEED`.
+      goal_frequency: None for a static goal. Otherwise angular frequencies
+        (rad/s: one per joint, or one for all; or a Variation of them): the
+        claw starts halfway between `initial_pose` and `goal_pose` and each
+        joint's goal oscillates between them at its own frequency, as in
+        ROBEL's PoseRandom, its amplitude cut so that it moves no faster
+        than `_MAX_GOAL_SPEED`.
       dynamics: per-episode dynamics ranges, or None.
       observation_noise: ROBEL's observation-noise fraction.
       observation_keys: the agent's observation; ROBEL's default if None.
@@ -84,7 +90,9 @@ class PoseTask(base.RobelTask):
     self._goal_frequency = goal_frequency
     self._goal_center = np.zeros(9)
     self._goal_amplitude = np.zeros(9)
-    self._frequency = 0.0
+    self._frequency = np.zeros(9)
+    self._goal_moves = False
+    self._phase = np.zeros(9)
     self._goal = np.zeros(9)
     self._error = np.zeros(9)
     self._abs_error = np.zeros(9)
@@ -113,6 +121,17 @@ class PoseTask(base.RobelTask):
     """The current goal pose, rad."""
     return self._goal.copy()
 
+  @property
+  def goal_frequency(self) -> np.ndarray:
+    """Each joint's goal oscillation frequency this episode, rad/s (zeros
+    for a static goal)."""
+    return self._frequency.copy()
+
+  @property
+  def goal_amplitude(self) -> np.ndarray:
+    """Each joint's goal oscillation amplitude this episode, rad."""
+    return self._goal_amplitude.copy()
+
   def reference_action(self, physics) -> np.ndarray:
     """Moves every joint towards the goal, slower than the safety limit.
 
@@ -132,25 +151,30 @@ class PoseTask(base.RobelTask):
       initial = pose_a
       self._goal_center[:] = pose_b
       self._goal_amplitude[:] = 0.0
-      self._frequency = 0.0
+      self._frequency[:] = 0.0
     else:
-      frequency = variation.evaluate(
+      self._frequency[:] = variation.evaluate(
         self._goal_frequency, random_state=random_state
       )
+      if not np.all(self._frequency > 0):
+        raise ValueError(
+          f'goal frequencies must be positive: {self._frequency.tolist()}'
+        )
       initial = (pose_a + pose_b) / 2
       self._goal_center[:] = initial
       self._goal_amplitude[:] = np.minimum(
-        np.abs(pose_b - pose_a) / 2, _MAX_GOAL_SPEED / frequency
+        np.abs(pose_b - pose_a) / 2, _MAX_GOAL_SPEED / self._frequency
       )
-      self._frequency = float(frequency)
+    self._goal_moves = self._goal_frequency is not None
     self._goal[:] = self._goal_center  # The goal at time 0.
     physics.bind(self.robot.joints).qpos = initial
     physics.bind(self.robot.actuators).ctrl = initial
 
   def _compute(self, physics) -> tuple[float, ...]:
     goal = self._goal
-    if self._frequency:
-      phase = math.sin(self._frequency * self._mjdata.time)
+    if self._goal_moves:
+      phase = np.multiply(self._frequency, self._mjdata.time, out=self._phase)
+      np.sin(phase, out=phase)
       np.multiply(self._goal_amplitude, phase, out=goal)
       goal += self._goal_center
     self._qpos_feature[:] = self._sensed_qpos
@@ -181,7 +205,8 @@ def pose_fixed(**kwargs) -> PoseTask:
 
 @registry.DCLAW.add(registry.RANDOM)
 def pose_random(**kwargs) -> PoseTask:
-  """A goal oscillating between two random poses."""
+  """A goal oscillating between two random poses, each joint at its own
+  random frequency."""
   return PoseTask(
     initial_pose=RANDOM_POSE,
     goal_pose=RANDOM_POSE,
