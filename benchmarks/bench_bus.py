@@ -11,7 +11,7 @@ motors) and the D'Kitty (12):
     jitter of the control period (start-to-start of the motor exchanges,
     against 100 ms).
 Prints them next to the physical bus's time per step at 1 Mbps (wire bytes
-at 10 bits per byte, Return Delay Time 0; dynamixel.md section 5).
+at 10 bits per byte, Return Delay Time 0; docs/dynamixel.md section 5).
 
     MUJOCO_GL=egl python benchmarks/bench_bus.py [--steps 100]
 """
@@ -30,7 +30,7 @@ from robel_dm.hardware import config as config_lib
 from robel_dm.hardware import dynamixel
 from robel_dm.hardware import environment as hardware
 
-# Wire bytes of one step at 1 Mbps (dynamixel.md section 5): sync-read
+# Wire bytes of one step at 1 Mbps (docs/dynamixel.md section 5): sync-read
 # instruction 14 + N, N status replies of 21 bytes, sync write 14 + 5 N.
 _BAUD = 1_000_000
 _TASKS = {'dclaw': 'pose_fixed', 'dkitty': 'stand_fixed'}

@@ -1,4 +1,7 @@
-"""Timing constants shared by every ROBEL task (robel_facts section 1)."""
+"""Timing constants shared by every ROBEL task.
+
+ROBEL's numbers: docs/robel_reference.md section 1.
+"""
 
 # Physics timestep of every ROBEL scene, seconds (400 Hz).
 PHYSICS_TIMESTEP = 0.0025

@@ -1,9 +1,10 @@
 """Per-episode dynamics randomization on the compiled model.
 
-Every range ROBEL randomizes lives here, as data (robel_facts 2.1-2.4, 6). The
-randomizer writes the compiled `MjModel` in place with one vectorized write per
-quantity, always relative to a nominal snapshot taken after compilation, so
-draws never compound across episodes and the MJCF is never recompiled.
+Every range ROBEL randomizes lives here, as data (docs/robel_reference.md
+sections 2.1-2.4, 6). The randomizer writes the compiled `MjModel` in place
+with one vectorized write per quantity, always relative to a nominal snapshot
+taken after compilation, so draws never compound across episodes and the
+MJCF is never recompiled.
 """
 
 import dataclasses

@@ -1,8 +1,8 @@
 """ROBEL's numbers, and helpers shared by the test modules.
 
-The numbers are written out from robel_facts (sections 1, 2.0, 2.3, 2.4, 3.4
-and 6), independently of robel_dm, so that the tests compare robel_dm with
-ROBEL rather than with itself.
+The numbers are written out from docs/robel_reference.md (sections 1, 2.0, 2.3,
+2.4, 3.4 and 6), independently of robel_dm, so that the tests compare
+robel_dm with ROBEL rather than with itself.
 """
 
 import math
@@ -27,7 +27,7 @@ TIMING = {
   'walk': (160, 0.1),
 }
 
-# --- Action map (robel_facts 2.0) ---------------------------------------------
+# --- Action map (docs/robel_reference.md section 2.0) -------------------------
 
 DCLAW_ACTION_HIGH = np.tile([0.48, np.pi / 3, np.pi / 2], 3)
 DCLAW_ACTION_LOW = -DCLAW_ACTION_HIGH
@@ -50,18 +50,20 @@ ACTION_RANGE = {
 # from the current position, rad/s.
 MAX_JOINT_SPEED = {'dclaw': 2 * np.pi / 3, 'dkitty': np.pi}
 
-# The D'Kitty's mechanical joint ranges (robel_facts 3.4: hips -3.419..0.279
-# and -0.279..3.419, upper legs +-2.14, knees +-1.57; ROBEL's 3.419 and 1.57
-# are pi + 0.279 and pi / 2 written with 3.14, which robel_dm writes exactly).
+# The D'Kitty's mechanical joint ranges (docs/robel_reference.md section 3.4:
+# hips -3.419..0.279 and -0.279..3.419, upper legs +-2.14, knees +-1.57;
+# ROBEL's 3.419 and 1.57 are pi + 0.279 and pi / 2 written with 3.14, which
+# robel_dm writes exactly).
 _HIP = math.pi + 0.279
 DKITTY_JOINT_LOW, DKITTY_JOINT_HIGH = _kitty_ranges(
   (-_HIP, 0.279), (-0.279, _HIP), (-2.14, 2.14), (-np.pi / 2, np.pi / 2)
 )
 
-# Safety counters (robel_facts 2.3): position margin (rad) to the range the
-# counter watches, speed limit (rad/s). ROBEL's D'Claw counts near the action
-# range; robel_dm's D'Kitty (ROBEL had no D'Kitty counters) near the
-# mechanical joint range, at ROBEL's D'Kitty joint speed limit.
+# Safety counters (docs/robel_reference.md section 2.3): position margin (rad)
+# to the range the counter watches, speed limit (rad/s). ROBEL's D'Claw
+# counts near the action range; robel_dm's D'Kitty (ROBEL had no D'Kitty
+# counters) near the mechanical joint range, at ROBEL's D'Kitty joint speed
+# limit.
 SAFETY_MARGIN = np.deg2rad(5.0)
 SAFETY_SPEED = {'dclaw': 1.0, 'dkitty': np.pi}
 SAFETY_RANGE = {
@@ -88,7 +90,8 @@ _KITTY_LAYOUT = (
   ('last_action', 12),
   ('upright', 1),
 )
-# Key and size of each entry, in order (robel_facts 2.1, 2.2, 2.5-2.7).
+# Key and size of each entry, in order (docs/robel_reference.md sections 2.1,
+# 2.2, 2.5-2.7).
 LAYOUTS = {
   'pose': (('qpos', 9), ('last_action', 9), ('qpos_error', 9)),
   'turn': _VALVE_LAYOUT,

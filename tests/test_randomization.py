@@ -1,7 +1,8 @@
-"""Tests of dynamics randomization and observation noise (robel_facts 2, 6).
+"""Tests of dynamics randomization and observation noise.
 
-The ranges below are ROBEL's, written out from robel_facts; the nominal model
-is the compiled model of the task family's Fixed variant.
+The ranges below are ROBEL's, written out from docs/robel_reference.md
+(sections 2 and 6); the nominal model is the compiled model of the task
+family's Fixed variant.
 """
 
 import dataclasses
@@ -17,7 +18,7 @@ from robel_dm.entities import dclaw
 
 _RESETS = 30
 
-# ROBEL's RandomDynamics ranges (robel_facts 2.1, 2.2).
+# ROBEL's RandomDynamics ranges (docs/robel_reference.md sections 2.1, 2.2).
 _DAMPING = (0.005, 0.1)
 _FRICTION_LOSS = (0.001, 0.005)
 _KP = (1.0, 3.0)
@@ -29,15 +30,16 @@ _MOUNT_OFFSET = 0.01
 _COLOR = (0.2, 0.9)
 _PLASTIC_RATIO = 0.2  # Plastic (fingertips, valve) to metal slide friction.
 
-# The D'Kitty's (robel_facts 2.4): one damping and one friction-loss draw for
-# all leg DOFs, kp per task, total mass.
+# The D'Kitty's (docs/robel_reference.md section 2.4): one damping and one
+# friction-loss draw for all leg DOFs, kp per task, total mass.
 _KITTY_DAMPING = (0.1, 0.2)
 _KITTY_KP_STAND = (2.0, 4.0)
 _KITTY_KP_WALK = (2.8, 3.2)  # Orient and Walk.
 _KITTY_MASS = (1.6, 2.0)
 _TERRAIN = (0.0, 0.05)
 
-# Observation noise half-widths: 0.05 * range width / 2 (robel_facts 6).
+# Observation noise half-widths: 0.05 * range width / 2
+# (docs/robel_reference.md section 6).
 _CLAW_QPOS_NOISE = 0.05 * np.tile([0.96, 2 * np.pi / 3, np.pi], 3) / 2
 _CLAW_QVEL_NOISE = 0.05 * (4 * np.pi / 3) / 2
 _VALVE_NOISE = 0.05 * np.pi
@@ -338,7 +340,7 @@ def _wrap(angle):
 
 
 def _pose_reward(goal, qpos, qvel):
-  """ROBEL's Pose reward and points (robel_facts 2.1)."""
+  """ROBEL's Pose reward and points (docs/robel_reference.md section 2.1)."""
   error = goal - qpos
   fast = np.abs(qvel) >= np.pi
   reward = -np.linalg.norm(error) - 0.1 * np.linalg.norm(qvel[fast])
@@ -346,7 +348,10 @@ def _pose_reward(goal, qpos, qvel):
 
 
 def _valve_reward(goal, angle, qpos, qvel):
-  """ROBEL's Turn/Screw reward and points (robel_facts 2.2)."""
+  """ROBEL's Turn/Screw reward and points.
+
+  ROBEL's definition: docs/robel_reference.md section 2.2.
+  """
   distance = abs(_wrap(goal - angle))
   fast = np.abs(qvel) >= 0.5
   reset_pose = np.tile([0.0, -np.pi / 3, np.pi / 3], 3)

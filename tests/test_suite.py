@@ -11,7 +11,8 @@ from robel_dm import constants, suite
 from robel_dm.entities import dkitty
 
 # ROBEL's episode length (control steps) and control timestep (s) per task
-# family (robel_facts section 1); the family is the task name's first word.
+# family (docs/robel_reference.md section 1); the family is the task name's
+# first word.
 _ROBEL_TIMING = robel_spec.TIMING
 _ROBEL_PHYSICS_TIMESTEP = robel_spec.PHYSICS_TIMESTEP
 _ONE_TASK_PER_DOMAIN = (('dclaw', 'turn_fixed'), ('dkitty', 'walk_fixed'))

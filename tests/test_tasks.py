@@ -1,4 +1,6 @@
-"""Tests every task must pass, whatever its robot (robel_facts 2.0, 2.3).
+"""Tests every task must pass, whatever its robot.
+
+ROBEL's definitions: docs/robel_reference.md sections 2.0 and 2.3.
 
 Observation layout, signal types, the action map and its velocity clamp,
 safety counters and the handling of bad actions, with expected values from

@@ -1,9 +1,10 @@
-"""Tests of the D'Claw tasks against ROBEL's definitions (robel_facts 2.0-2.3).
+"""Tests of the D'Claw tasks against ROBEL's definitions.
 
 Expected values are computed here, independently of robel_dm, from the
-formulas and constants of robel_facts: reward terms, scores, success
-criteria, initial states and goals, and the valves. What every task shares
-(observation layout, action map, safety counters) is in test_tasks.py.
+formulas and constants of docs/robel_reference.md (sections 2.0-2.3): reward
+terms, scores, success criteria, initial states and goals, and the valves.
+What every task shares (observation layout, action map, safety counters) is in
+test_tasks.py.
 """
 
 import math
@@ -13,7 +14,7 @@ import pytest
 
 from robel_dm import suite
 
-# --- ROBEL's constants (robel_facts 2.0-2.3) ---------------------------------
+# --- ROBEL's constants (docs/robel_reference.md sections 2.0-2.3) -------------
 
 # Action ranges per joint (top, middle, bottom) x 3 fingers, rad.
 _HALF_RANGE = np.tile([0.48, np.pi / 3, np.pi / 2], 3)
@@ -51,7 +52,10 @@ def _wrap(angle):
 
 
 def _pose_expected(goal, qpos, qvel):
-  """ROBEL's Pose reward terms and points (robel_facts 2.1)."""
+  """ROBEL's Pose reward terms and points.
+
+  ROBEL's definition: docs/robel_reference.md section 2.1.
+  """
   error = goal - qpos
   fast = np.abs(qvel) >= np.pi
   terms = {
@@ -63,7 +67,10 @@ def _pose_expected(goal, qpos, qvel):
 
 
 def _valve_expected(goal, claw_qpos, claw_qvel, valve_angle):
-  """ROBEL's Turn/Screw reward terms and points (robel_facts 2.2)."""
+  """ROBEL's Turn/Screw reward terms and points.
+
+  ROBEL's definition: docs/robel_reference.md section 2.2.
+  """
   distance = abs(_wrap(goal - valve_angle))
   fast = np.abs(claw_qvel) >= 0.5
   terms = {

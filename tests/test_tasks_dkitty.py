@@ -1,12 +1,12 @@
-"""Tests of the D'Kitty tasks against ROBEL's definitions (robel_facts 2.4-2.7).
+"""Tests of the D'Kitty tasks against ROBEL's definitions.
 
 Expected values are computed here, independently of robel_dm, from the
-formulas and constants of robel_facts: torso observations, reward terms,
-scores, success, falling, initial states and goals, the terrain, and that
-the robot stands. Hand-built states are written into the free joint and the
-leg joints directly. What every task shares (observation layout, action map,
-safety counters) is in test_tasks.py; dynamics randomization and noise in
-test_randomization.py.
+formulas and constants of docs/robel_reference.md (sections 2.4-2.7): torso
+observations, reward terms, scores, success, falling, initial states and
+goals, the terrain, and that the robot stands. Hand-built states are written
+into the free joint and the leg joints directly. What every task shares
+(observation layout, action map, safety counters) is in test_tasks.py;
+dynamics randomization and noise in test_randomization.py.
 """
 
 import math
@@ -23,7 +23,8 @@ from robel_dm.tasks import dkitty_common
 _ORIGIN = np.array([0.0, 0.0, 0.3])  # ROBEL's kitty_frame start.
 _STANDING = np.zeros(12)
 _CROUCH = np.tile([0.0, np.pi / 4, -np.pi / 2], 4)  # ROBEL's StandFixed.
-# Falling: upright threshold and falling term per family (robel_facts 2.4).
+# Falling: upright threshold and falling term per family
+# (docs/robel_reference.md section 2.4).
 _FALLING = {'stand': (0.0, -100.0), 'orient': (0.9, -500.0),
             'walk': (0.9, -500.0)}  # fmt: skip
 
@@ -127,7 +128,7 @@ def kitty_envs():
     env.close()
 
 
-# --- ROBEL's rewards (robel_facts 2.5-2.7) ------------------------------------
+# --- ROBEL's rewards (docs/robel_reference.md sections 2.5-2.7) ---------------
 
 
 def _stand_expected(upright, legs, xy):

@@ -28,7 +28,7 @@ sdk = pytest.importorskip('dynamixel_sdk')
 serial = pytest.importorskip('serial')
 
 BAUD_RATE = 1_000_000
-# Examples from dynamixel.md section 1.1 (taken from the e-manual).
+# Examples from docs/dynamixel.md section 1.1 (taken from the e-manual).
 EXAMPLE_PACKETS = {
   'ping': (
     protocol.encode_instruction(1, Instruction.PING),
@@ -96,7 +96,8 @@ def test_example_packets(name):
 
 
 def test_stuffing_of_negative_current_and_velocity():
-  # dynamixel.md 1.2: current -1 (FF FF) then velocity -3 (FD FF FF FF).
+  # docs/dynamixel.md section 1.2: current -1 (FF FF) then velocity -3
+  # (FD FF FF FF).
   data = _state_block(current=-1, velocity=-3, position=2048)
   encoded = protocol.encode_status(1, 0, data)
   assert bytes.fromhex('55 00 FF FF FD FD FF FF FF') in encoded

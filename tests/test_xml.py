@@ -188,7 +188,7 @@ def test_dm_control_composes_claw_and_valve(name):
   np.testing.assert_allclose(tips[:, 2], 0.106, atol=5e-4)
 
 
-# D'Kitty (robel_facts 3.4; action ranges 2.0).
+# D'Kitty (docs/robel_reference.md section 3.4; action ranges: section 2.0).
 _KITTY_ORDER = tuple(
   f'{leg}J{digit}{k}'
   for leg, digit in (('FR', 1), ('FL', 2), ('BL', 3), ('BR', 4))

@@ -4,8 +4,9 @@ from dm_control import composer, mjcf
 
 from robel_dm import assets
 
-# Height of the claw mount above the floor, m (robel_facts 3.2): the valve
-# scenes mount the claw 35 mm higher than the pose scene.
+# Height of the claw mount above the floor, m (docs/robel_reference.md
+# section 3.2): the valve scenes mount the claw 35 mm higher than the pose
+# scene.
 MOUNT_HEIGHT_POSE = 0.30
 MOUNT_HEIGHT_VALVE = 0.335
 

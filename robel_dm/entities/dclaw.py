@@ -7,7 +7,8 @@ import numpy as np
 from robel_dm import assets
 from robel_dm.entities import limits, servo_robot
 
-# Joints in action order; motor IDs are the digits (robel_facts 3.2, 4.1).
+# Joints in action order; motor IDs are the digits (docs/robel_reference.md
+# sections 3.2, 4.1).
 JOINT_NAMES = (
   'FFJ10', 'FFJ11', 'FFJ12',
   'MFJ20', 'MFJ21', 'MFJ22',
@@ -23,7 +24,7 @@ MAX_JOINT_SPEED = 2 * np.pi / 3
 RESET_POSE = np.tile([0.0, -np.pi / 3, np.pi / 3], 3)
 
 
-# ROBEL's D'Claw safety thresholds (robel_facts 2.3).
+# ROBEL's D'Claw safety thresholds (docs/robel_reference.md section 2.3).
 SAFETY_LIMITS = limits.SafetyLimits(
   position_margin=np.deg2rad(5.0), max_speed=1.0, max_current=200.0
 )

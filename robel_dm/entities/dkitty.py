@@ -1,4 +1,7 @@
-"""The D'Kitty: a 12-DoF quadruped of Dynamixel servos (robel_facts 3.4)."""
+"""The D'Kitty: a 12-DoF quadruped of Dynamixel servos.
+
+ROBEL's model: docs/robel_reference.md section 3.4.
+"""
 
 from dm_control import composer, mjcf
 from dm_control.composer.observation import observable
@@ -7,7 +10,8 @@ import numpy as np
 from robel_dm import assets
 from robel_dm.entities import limits, servo_robot
 
-# Joints in action order; motor IDs are the digits (robel_facts 3.4, 4.1).
+# Joints in action order; motor IDs are the digits (docs/robel_reference.md
+# sections 3.4, 4.1).
 # Legs: front right, front left, back left, back right; the robot faces +y.
 JOINT_NAMES = (
   'FRJ10', 'FRJ11', 'FRJ12',

@@ -5,7 +5,9 @@ import dataclasses
 
 @dataclasses.dataclass(frozen=True)
 class SafetyLimits:
-  """Thresholds of the per-step safety counters (robel_facts 2.3).
+  """Thresholds of the per-step safety counters.
+
+  ROBEL's D'Claw thresholds: docs/robel_reference.md section 2.3.
 
   Attributes:
     position_margin: a joint closer than this to either end of its range

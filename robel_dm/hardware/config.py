@@ -2,7 +2,8 @@
 
 A configuration is data (JSON), so that a robot with other wiring or other
 calibration offsets needs a new file, not new code. The shipped defaults are
-ROBEL's (robel_facts 4.1): `configs/dclaw.json` and `configs/dkitty.json`.
+ROBEL's (docs/robel_reference.md section 4.1): `configs/dclaw.json` and
+`configs/dkitty.json`.
 
 Calibration maps a motor's own angle (ticks * 2 pi / 4096, rad) to the
 joint angle of the model: q = scale * motor_angle + offset; velocities are

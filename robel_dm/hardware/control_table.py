@@ -1,6 +1,6 @@
 """Dynamixel X-series (Protocol 2.0) control table and units.
 
-Addresses, sizes and units of the X430 servos ROBEL uses (dynamixel.md
+Addresses, sizes and units of the X430 servos ROBEL uses (docs/dynamixel.md
 section 2); the single source of these numbers for the client, the virtual
 bus and the diagnostics.
 """
@@ -134,7 +134,7 @@ RADIANS_PER_SECOND_PER_UNIT = 0.229 * 2 * math.pi / 60  # 0.229 rpm.
 VOLTS_PER_UNIT = 0.1
 
 # Model number -> (name, current unit in mA). W-series 2.69 mA, V-series
-# 1.34 mA (dynamixel.md section 2).
+# 1.34 mA (docs/dynamixel.md section 2).
 MODELS = {
   1000: ('XH430-W350', 2.69),
   1010: ('XH430-W210', 2.69),

@@ -297,7 +297,7 @@ class DynamixelClient:
     """Runs one SDK transaction; clears the SDK's port lock around it.
 
     An exception inside the SDK leaves `port.is_using` set, after which
-    every call would answer COMM_PORT_BUSY (dynamixel.md 3.5).
+    every call would answer COMM_PORT_BUSY (docs/dynamixel.md section 3.5).
     """
     self._port.is_using = False
     try:

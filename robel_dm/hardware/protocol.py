@@ -1,6 +1,6 @@
 """Dynamixel Protocol 2.0 packets: CRC, byte stuffing, encoding, parsing.
 
-Both directions share one frame layout (dynamixel.md section 1.1):
+Both directions share one frame layout (docs/dynamixel.md section 1.1):
 
   instruction: FF FF FD 00 | ID | LEN_L LEN_H | INST | params      | CRC
   status:      FF FF FD 00 | ID | LEN_L LEN_H | 0x55 | ERR | params | CRC
@@ -33,7 +33,7 @@ MAX_PACKET_SIZE = 1024
 
 
 class Instruction(enum.IntEnum):
-  """Instruction codes (dynamixel.md section 1.4)."""
+  """Instruction codes (docs/dynamixel.md section 1.4)."""
 
   PING = 0x01
   READ = 0x02

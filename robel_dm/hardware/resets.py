@@ -7,7 +7,8 @@ that state and the auxiliary motors released. Every procedure is bounded in
 time and attempts and raises `ResetError`, naming the motors, when it fails.
 
 * `MoveReset` ('move'): one bounded blocking move (ROBEL's plain reset).
-* `DClawScriptedReset` ('scripted'): ROBEL's D'Claw reset (robel_facts 4.4):
+* `DClawScriptedReset` ('scripted'): ROBEL's D'Claw reset
+  (docs/robel_reference.md section 4.4):
   fingers relaxed while the valve is driven to its initial angle, then the
   claw moved with a check per motor, and a disentangling sequence between
   retries.
@@ -23,9 +24,9 @@ import numpy as np
 from robel_dm.hardware import clock as clock_lib
 from robel_dm.hardware import robot as robot_lib
 
-# Blocking moves (robel_facts 4.3): the move ends when every checked joint is
-# within the tolerance, when none moved more than the stall tolerance for two
-# polls, or at the timeout.
+# Blocking moves (docs/robel_reference.md section 4.3): the move ends when every
+# checked joint is within the tolerance, when none moved more than the stall
+# tolerance for two polls, or at the timeout.
 MOVE_TOLERANCE = np.deg2rad(1.0)  # rad
 MOVE_STALL_TOLERANCE = np.deg2rad(1.0)  # rad per poll
 MOVE_STALL_POLLS = 2
@@ -35,7 +36,7 @@ MOVE_TIMEOUT = 3.0  # s
 # (ROBEL's "good reset" tolerance).
 GOOD_RESET_TOLERANCE = np.deg2rad(5.0)
 
-# ROBEL's scripted D'Claw reset (robel_facts 4.4).
+# ROBEL's scripted D'Claw reset (docs/robel_reference.md section 4.4).
 _MIN_CLAW_RESET_TIME = 1.0  # s, from relaxing the fingers to moving them.
 _VALVE_MOVE_TIMEOUT = 10.0  # s
 _MAX_CLAW_ATTEMPTS = 4  # The first try and ROBEL's 3 retries.
@@ -308,9 +309,9 @@ def make(name, robot_config, domain: str, torso_source=None):
   )
 
 
-# ROBEL's scripted D'Kitty stand-up (robel_facts 4.5). Joint angles per pair
-# of legs (the group's two legs in ID order), rad; beyond the action ranges
-# on purpose (reset moves are not clipped to them).
+# ROBEL's scripted D'Kitty stand-up (docs/robel_reference.md section 4.5). Joint
+# angles per pair of legs (the group's two legs in ID order), rad; beyond the
+# action ranges on purpose (reset moves are not clipped to them).
 _TUCK_SPAN = 2.4
 _FOOT_SPAN = 2.5
 _INWARD_TUCK = np.array(
@@ -338,7 +339,9 @@ def upright_and_height(torso_source) -> tuple[float, float]:
 
 
 class DKittyScriptedReset:
-  """ROBEL's D'Kitty stand-up sequence, bounded (robel_facts 4.5).
+  """ROBEL's D'Kitty stand-up sequence, bounded.
+
+  ROBEL's sequence: docs/robel_reference.md section 4.5.
 
   Needs the torso pose (a tracker, or the virtual bus's simulation). While
   the robot is not standing: if upside down, flip it over; tuck the legs

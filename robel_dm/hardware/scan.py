@@ -36,7 +36,7 @@ MAX_ID = 252
 ALL_IDS = tuple(range(MAX_ID + 1))
 _FULL_POSITION_RANGE = (0, 4_095)
 
-# What ROBEL needs (dynamixel.md sections 1.6 and 2).
+# What ROBEL needs (docs/dynamixel.md sections 1.6 and 2).
 RECOMMENDED = {
   'status_return_level': 2,
   'operating_mode': table.POSITION_MODE,

@@ -1,8 +1,8 @@
 """Motion-tracker poses turned into the D'Kitty's torso state.
 
 A D'Kitty on real motors needs its torso pose (uprightness, heading,
-position) from a motion tracker (robel_facts 4.6). This module holds the
-tracker-independent part:
+position) from a motion tracker (docs/robel_reference.md section 4.6). This
+module holds the tracker-independent part:
 
   * `Pose` and the `TrackerSource` protocol: anything whose `poll()` returns
     the latest pose per rigid body (OptiTrack NatNet: `natnet.NatNetClient`;
@@ -17,7 +17,8 @@ Frames. A raw pose is the tracked body's pose in the tracker's world frame.
   1. `frame_rotation` R_f, a fixed rotation from the tracker's world frame
      to a z-up frame (`Y_UP_TO_Z_UP` for a y-up tracker such as Motive's
      default or OpenVR). ROBEL 0.1.2 declared this matrix for OpenVR but
-     never applied it (robel_facts 4.6, 7); here it is applied.
+     never applied it (docs/robel_reference.md sections 4.6, 7); here it is
+     applied.
   2. `body_rotation` / `body_offset`: where the torso frame is relative to
      the tracked body (the tracker's mounting): the torso's orientation and
      origin expressed in the tracked body's frame.
@@ -519,7 +520,8 @@ class TorsoTracker:
     orientations: `average_quaternions`), then sets the world transform so
     that the mean torso position is `ORIGIN` (0, 0, 0.3) and its heading is
     0, removing the yaw only (tilt is kept). As ROBEL does at each reset
-    (robel_facts 4.6). Targets are mapped by the same transform.
+    (docs/robel_reference.md section 4.6). Targets are mapped by the same
+    transform.
 
     Args:
       samples: how many new torso poses to average.

@@ -2,7 +2,7 @@
 
 The unmodified `dynamixel_sdk` (or any Protocol 2.0 client) opens
 `PtyBusServer.device_path` as if it were `/dev/ttyUSB0` and exchanges real
-packets with it (dynamixel.md section 4):
+packets with it (docs/dynamixel.md section 4):
 
   servos = make_servos([10, 11, 12])
   with PtyBusServer(Bus(servos)) as server:
@@ -25,7 +25,7 @@ packets with it (dynamixel.md section 4):
 Run `python -m robel_dm.hardware.virtual_bus --robot=dclaw` to serve a
 robot's motors from the command line; it prints the device path.
 
-Behaviour the e-manual leaves open, chosen here (dynamixel.md marks these
+Behaviour the e-manual leaves open, chosen here (docs/dynamixel.md marks these
 unverified): an instruction with a bad CRC is answered with error 3, a
 Goal Position outside the position limits with error 6 (Data Limit), an
 attempt to enable torque during a hardware-error shutdown with the alert bit
@@ -89,8 +89,9 @@ def _item_map() -> list[table.Item | None]:
 _ITEM_AT = _item_map()
 
 _GAIN_RANGE = (0, 16_383)
-# Valid values of items (beyond them: Data Range error); dynamixel.md section
-# 2. Items that the limit registers bound are checked in `_check_value`.
+# Valid values of items (beyond them: Data Range error); docs/dynamixel.md
+# section 2. Items that the limit registers bound are checked in
+# `_check_value`.
 _RANGES = {
   table.ID: (0, protocol.MAX_ID),
   table.BAUD_RATE: (min(table.BAUD_RATES), max(table.BAUD_RATES)),
@@ -159,7 +160,7 @@ class _ModelDefaults:
   input_voltage: int  # Present Input Voltage of the virtual supply.
 
 
-# dynamixel.md section 2; values it lists as unknown are copied from the
+# docs/dynamixel.md section 2; values it lists as unknown are copied from the
 # closest model (XH430-W350 from W210, XH430-V210 from V350).
 _W_SERIES = dict(max_voltage_limit=160, min_voltage_limit=95, input_voltage=120)
 _V_SERIES = dict(
@@ -706,7 +707,7 @@ class Faults:
     corrupt_crc: ID -> how many of its next status packets carry a wrong CRC
       (for a fast read: its block's CRC).
     chain_break: in a sync/bulk read, servos after a silent one stay silent
-      too, as on a real bus (dynamixel.md section 1.7).
+      too, as on a real bus (docs/dynamixel.md section 1.7).
     lock: guards the attributes.
   """
 
@@ -1225,7 +1226,7 @@ class PtyBusServer:
   `PortHandler`). The pty is put in raw mode at once, and the server keeps
   its own slave descriptor open for its whole life: otherwise the master
   reports EIO whenever the client has the port closed, e.g. while the SDK
-  reopens it in `setBaudRate` (dynamixel.md section 4.3).
+  reopens it in `setBaudRate` (docs/dynamixel.md section 4.3).
 
   The thread blocks in `select()` on the master and a wake-up pipe, so an
   idle server uses no CPU. It reads the client's baud rate from the pty's

@@ -1,4 +1,7 @@
-"""D'Claw Pose: drive the nine joints to a goal pose (robel_facts 2.1)."""
+"""D'Claw Pose: drive the nine joints to a goal pose.
+
+ROBEL's task: docs/robel_reference.md section 2.1.
+"""
 
 import math
 

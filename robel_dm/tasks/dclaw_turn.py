@@ -1,4 +1,7 @@
-"""D'Claw Turn: turn a free valve to a goal angle (robel_facts 2.2)."""
+"""D'Claw Turn: turn a free valve to a goal angle.
+
+ROBEL's task: docs/robel_reference.md section 2.2.
+"""
 
 import math
 

@@ -50,7 +50,9 @@ _MIN_COS_PITCH = 1e-6
 
 @dataclasses.dataclass(frozen=True)
 class Upright:
-  """ROBEL's uprightness terms and falling condition (robel_facts 2.4).
+  """ROBEL's uprightness terms and falling condition.
+
+  ROBEL's definition: docs/robel_reference.md section 2.4.
 
   Attributes:
     threshold: the robot has fallen when `upright` drops below this.

@@ -1,4 +1,7 @@
-"""D'Kitty Orient: turn in place to face a target (robel_facts 2.6)."""
+"""D'Kitty Orient: turn in place to face a target.
+
+ROBEL's task: docs/robel_reference.md section 2.6.
+"""
 
 import math
 

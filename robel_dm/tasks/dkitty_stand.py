@@ -1,4 +1,7 @@
-"""D'Kitty Stand: stand up straight from a crouch (robel_facts 2.5)."""
+"""D'Kitty Stand: stand up straight from a crouch.
+
+ROBEL's task: docs/robel_reference.md section 2.5.
+"""
 
 from dm_control.composer import variation
 import numpy as np

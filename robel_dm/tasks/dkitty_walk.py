@@ -1,4 +1,7 @@
-"""D'Kitty Walk: walk to a target while facing it (robel_facts 2.7)."""
+"""D'Kitty Walk: walk to a target while facing it.
+
+ROBEL's task: docs/robel_reference.md section 2.7.
+"""
 
 import math
 
