@@ -92,7 +92,6 @@ def control_loop(device_path: str, robot: str, steps: int) -> dict:
   env = hardware.make_environment(
     task,
     domain=robot,
-    task_name=_TASKS[robot],
     device_path=device_path,
     torso_source=(lambda: standing) if task.root_joint is not None else None,
     time_limit=float('inf'),

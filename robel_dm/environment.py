@@ -5,22 +5,51 @@ observation updater once per physics substep (about 4 us each). ROBEL runs 20
 or 40 substeps per control step, so that loop costs 15-30% of an `env.step`.
 When no substep hook is defined and every observable samples only the final
 substep (composer's "fast path" with a buffer of 1), the intermediate substeps
-are invisible to the task and the agent, and one batched MuJoCo call gives
+are invisible to the task and the agent, and one `physics.step(n)` gives
 bit-identical physics. In the same situation observation buffering is a no-op,
 so observables are evaluated once per control step without the buffers. In any
 other configuration composer's own loop and updater run unchanged.
+
+This module is robel_dm's only adapter to dm_control internals: composer has
+no public hook for the above, so it reads or overrides the private names below
+(dm-control is pinned, and the tests pin the behaviour: the batched loop is
+bit-identical to composer's). No other robel_dm module uses them.
+
+composer.Environment
+  _recompile_physics: overridden to build the physics with `physics_factory`
+    (a robot's physics on hardware).
+  _make_observation_updater: overridden to build the lean updater.
+  _mjcf_never_compiled, _recompile_mjcf_every_episode,
+    _hooks._initialize_episode_mjcf: cleared / read to skip composer's second
+    compile at the first reset when no MJCF hook needs it.
+  _hooks._before_step, _after_step, _before_substep, _after_substep
+    (entity_hooks, extra_hooks): read to know whether substeps are observed
+    and whether the task's hooks can be called directly.
+  _task, _physics, _physics_proxy, _random_state, _n_sub_steps, _time_limit,
+    _reset_next_step, _raise_exception_on_physics_error,
+    _observation_updater, _legacy_step, _delayed_observation_padding,
+    _strip_singleton_obs_buffer_dim: the state composer's own `step` and
+    `_recompile_physics` use, which their replacements here use the same way.
+observation.Updater
+  _enabled_list, _enabled_structure, _is_nested, _strip_singleton_buffer_dim:
+    read to decide whether the lean path applies and to name its outputs.
+  _physics_steps_per_control_step, _step_counter: the updater's clock, which
+    the batched step advances without sampling.
 """
 
 import collections
+from collections.abc import Callable
 
-from dm_control import composer
+from absl import logging
+from dm_control import composer, mjcf
 from dm_control.composer.observation import observable, updater
 from dm_control.rl import control
 import dm_env
-import mujoco
 import numpy as np
 
 _SUBSTEP_HOOKS = ('before_substep', 'after_substep')
+
+PhysicsFactory = Callable[[mjcf.RootElement], mjcf.Physics]
 
 
 class CachedArray(observable.Observable):
@@ -129,10 +158,24 @@ class Environment(composer.Environment):
   stripped so observations have their natural shapes.
   """
 
-  def __init__(self, task: composer.Task, **kwargs):
+  def __init__(
+    self,
+    task: composer.Task,
+    physics_factory: PhysicsFactory | None = None,
+    **kwargs,
+  ):
+    """Initializes the environment.
+
+    Args:
+      task: the task.
+      physics_factory: builds the physics of a compiled model;
+        `mjcf.Physics.from_mjcf_model` (simulation) by default.
+      **kwargs: `composer.Environment` arguments.
+    """
     kwargs.setdefault('recompile_mjcf_every_episode', False)
     kwargs.setdefault('strip_singleton_obs_buffer_dim', True)
     self._batch_substeps = False
+    self._physics_factory = physics_factory or mjcf.Physics.from_mjcf_model
     super().__init__(task, **kwargs)
     # The constructor has compiled the model. composer compiles it again at
     # the first reset, to run `initialize_episode_mjcf` hooks first; when
@@ -145,6 +188,13 @@ class Environment(composer.Environment):
       or self._hooks._initialize_episode_mjcf.entity_hooks
     ):
       self._mjcf_never_compiled = False
+
+  def _recompile_physics(self):
+    physics = getattr(self, '_physics', None)
+    if physics:
+      physics.free()
+    self._physics = self._physics_factory(self._task.root_entity.mjcf_model)
+    self._physics.legacy_step = self._legacy_step
 
   def _make_observation_updater(self):
     pad = (
@@ -175,17 +225,7 @@ class Environment(composer.Environment):
       hook.entity_hooks or hook.extra_hooks
       for hook in (self._hooks._before_step, self._hooks._after_step)
     )
-    physics = self._physics
-    # The batched call reproduces dm_control's legacy Euler step; any other
-    # stepping mode goes through `physics.step`.
-    self._direct_mujoco = (
-      physics.legacy_step
-      and physics.model.opt.integrator != mujoco.mjtIntegrator.mjINT_RK4
-    )
-    self._model_ptr = physics.model.ptr
-    self._data_ptr = physics.data.ptr
-    self._warning_counts = physics.data.warning.number
-    self._warnings_at_reset = self._warning_counts.copy()
+    self._data_ptr = self._physics.data.ptr  # The raw MjData (fast time).
 
   def add_extra_hook(self, hook_name, hook_callable):
     super().add_extra_hook(hook_name, hook_callable)
@@ -195,27 +235,6 @@ class Environment(composer.Environment):
     timestep = super().reset()
     self._prepare_batching()
     return timestep
-
-  def _step_physics(self) -> None:
-    """Advances all substeps of one control step at once."""
-    if not self._direct_mujoco:
-      self._physics.step(self._n_sub_steps)
-      return
-    model, data = self._model_ptr, self._data_ptr
-    # dm_control's legacy step: finish the pending step, take the rest, and
-    # leave position/velocity-dependent quantities up to date.
-    mujoco.mj_step2(model, data)
-    if self._n_sub_steps > 1:
-      mujoco.mj_step(model, data, self._n_sub_steps - 1)
-    mujoco.mj_step1(model, data)
-    counts = self._warning_counts
-    if counts.any() and (counts > self._warnings_at_reset).any():
-      new = np.flatnonzero(counts > self._warnings_at_reset)
-      names = ', '.join(mujoco.mjtWarning(int(i)).name for i in new)
-      np.copyto(self._warnings_at_reset, counts)
-      raise control.PhysicsError(
-        f'Physics state is invalid. Warning(s): {names}'
-      )
 
   def step(self, action) -> dm_env.TimeStep:
     if not self._batch_substeps or self._reset_next_step:
@@ -228,11 +247,14 @@ class Environment(composer.Environment):
       self._hooks.before_step(physics, action, random_state)
     self._observation_updater.prepare_for_next_control_step()
     try:
-      self._step_physics()
+      # The legacy step of all substeps at once (on hardware: one exchange
+      # with the motors); it raises on MuJoCo warnings, as composer's does.
+      self._physics.step(self._n_sub_steps)
       physics_is_divergent = False
-    except control.PhysicsError:
+    except control.PhysicsError as error:
       if self._raise_exception_on_physics_error:
         raise
+      logging.warning(error)
       physics_is_divergent = True
     self._observation_updater.skip_substeps(self._n_sub_steps - 1)
     if self._task_hooks_only:

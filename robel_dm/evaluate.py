@@ -53,6 +53,13 @@ _RESET = flags.DEFINE_enum(
   ['scripted', 'move', 'manual'],
   "With --device_path: how the robot is reset (default: the robot's).",
 )
+_GUIDE = flags.DEFINE_enum(
+  'guide',
+  None,
+  ['show', 'interactive'],
+  "With --device_path, D'Claw Turn/Screw: the guide motor shows the goal, "
+  'or a person turns it to set the goal.',
+)
 
 
 def parse_task_kwargs(text: str) -> dict[str, Any]:
@@ -98,6 +105,7 @@ def evaluate(
   device_path: str | None = None,
   robot_config: str | None = None,
   reset: str | None = None,
+  guide: str | None = None,
 ) -> dict[str, Any]:
   """Runs `episodes` episodes and returns the metrics.
 
@@ -112,6 +120,7 @@ def evaluate(
     device_path: run on a robot (see `suite.load`); None simulates.
     robot_config: robot configuration file for `device_path`.
     reset: reset procedure for `device_path` (see `suite.load`).
+    guide: guide motor mode for `device_path` (see `suite.load`).
 
   Returns:
     A JSON-serializable dict of per-episode records and summary metrics.
@@ -129,6 +138,7 @@ def evaluate(
     device_path=device_path,
     robot_config=robot_config,
     reset=reset,
+    guide=guide,
   )
   try:
     act = policies.make_policy(policy, env, seed)
@@ -240,6 +250,7 @@ def main(argv):
       device_path=_DEVICE_PATH.value,
       robot_config=_ROBOT_CONFIG.value,
       reset=_RESET.value,
+      guide=_GUIDE.value,
     )
   except (ValueError, RuntimeError) as error:
     print(f'error: {error}', file=sys.stderr)

@@ -9,6 +9,7 @@ singleton observation dimensions) are the same for every task.
 """
 
 import difflib
+import math
 from typing import Any
 
 from robel_dm import constants, registry
@@ -65,6 +66,7 @@ def load(
   robot_config=None,
   reset: str | None = None,
   tracker=None,
+  guide: str | None = None,
 ) -> Environment:
   """Builds a task's environment.
 
@@ -86,6 +88,9 @@ def load(
       `robel_dm.hardware.resets`); the robot's default if None.
     tracker: with `device_path`: a `robel_dm.hardware.tracking.TorsoTracker`
       giving the D'Kitty's torso pose (and Orient/Walk targets).
+    guide: with `device_path`, for D'Claw Turn/Screw: ROBEL's guide motor
+      'show's the goal, or ('interactive') a person turns it to set the
+      goal.
 
   Returns:
     A `dm_env.Environment` (a `composer.Environment`).
@@ -112,9 +117,16 @@ def load(
   # physics timesteps fall just short of round numbers (40 x 0.1 s sums to
   # 3.9999...): without this margin a 4 s limit would run 41 steps.
   time_limit -= _TIME_LIMIT_MARGIN
+  hardware_options = {
+    'robot_config': robot_config,
+    'reset': reset,
+    'tracker': tracker,
+    'guide': guide,
+  }
   if device_path is None:
-    if robot_config is not None or reset is not None or tracker is not None:
-      raise ValueError('robot_config, reset and tracker need a device_path')
+    given = [name for name, value in hardware_options.items() if value]
+    if given:
+      raise ValueError(f'{", ".join(given)} need a device_path (a robot)')
     return Environment(
       task_instance,
       time_limit=time_limit,
@@ -124,17 +136,19 @@ def load(
   # Imported here: the hardware layer needs the optional dynamixel_sdk.
   from robel_dm.hardware import environment as hardware  # noqa: PLC0415
 
+  def simulated_scene() -> Environment:
+    # The simulated robot behind a virtual bus: the same task, untimed.
+    return load(
+      domain, task, seed=seed, task_kwargs=task_kwargs, time_limit=math.inf
+    )
+
   return hardware.make_environment(
     task_instance,
     domain=domain,
-    task_name=task,
     device_path=device_path,
-    robot_config=robot_config,
-    task_kwargs=task_kwargs,
-    seed=seed,
-    reset=reset,
-    tracker=tracker,
+    scene_factory=simulated_scene,
     time_limit=time_limit,
     random_state=seed,
+    **hardware_options,
     **(environment_kwargs or {}),
   )

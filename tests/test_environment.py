@@ -5,6 +5,8 @@ when nothing observes the intermediate substeps. Adding any substep hook sends
 `Environment.step` back to composer's own loop, which is the reference here.
 """
 
+import logging
+
 from dm_control.rl import control
 import mujoco
 import numpy as np
@@ -299,7 +301,9 @@ def test_physics_divergence_raises(task, divergence, hooked):
   [('dclaw', 'pose_fixed'), ('dkitty', 'stand_fixed')],
   ids=['dclaw-pose_fixed', 'dkitty-stand_fixed'],
 )
-def test_physics_divergence_ends_the_episode_when_not_raising(task, hooked):
+def test_physics_divergence_ends_the_episode_when_not_raising(
+  task, hooked, caplog
+):
   env = suite.load(
     *task, seed=0,
     environment_kwargs={'raise_exception_on_physics_error': False},
@@ -311,7 +315,10 @@ def test_physics_divergence_ends_the_episode_when_not_raising(task, hooked):
   assert env._batch_substeps != hooked
   timestep = env.step(policy(timestep))
   env.physics.data.qvel[3] = np.inf
-  timestep = env.step(policy(timestep))
+  with caplog.at_level(logging.WARNING):
+    timestep = env.step(policy(timestep))
+  # Logged as composer logs it, on either path.
+  assert 'Physics state is invalid' in caplog.text
   assert timestep.last()
   assert timestep.reward == 0.0 and timestep.discount == 0.0
   assert env.step(policy(timestep)).first()

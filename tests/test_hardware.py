@@ -310,7 +310,6 @@ def test_unknown_device_configuration_mismatch_is_rejected(tmp_path):
     hardware_env.make_environment(
       suite.registry.DCLAW['pose_fixed'](),
       domain='dclaw',
-      task_name='pose_fixed',
       device_path='virtual',
       robot_config=str(path),
     )

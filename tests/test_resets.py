@@ -98,8 +98,7 @@ def _guide_ticks(angle):
 
 def test_guide_motor_shows_the_moving_goal():
   env = suite.load(
-    'dclaw', 'screw_fixed', seed=0, device_path='virtual',
-    task_kwargs={'use_guide': True},
+    'dclaw', 'screw_fixed', seed=0, device_path='virtual', guide='show'
   )  # fmt: skip
   try:
     env.reset()
@@ -118,8 +117,7 @@ def test_guide_motor_shows_the_moving_goal():
 
 def test_interactive_mode_takes_the_goal_from_the_guide():
   env = suite.load(
-    'dclaw', 'turn_fixed', seed=0, device_path='virtual',
-    task_kwargs={'interactive': True},
+    'dclaw', 'turn_fixed', seed=0, device_path='virtual', guide='interactive'
   )  # fmt: skip
   try:
     env.reset()
@@ -137,8 +135,21 @@ def test_interactive_mode_takes_the_goal_from_the_guide():
 
 
 def test_guide_options_need_a_robot():
-  with pytest.raises(ValueError, match='guide motor'):
+  with pytest.raises(ValueError, match='guide need a device_path'):
+    suite.load('dclaw', 'turn_fixed', guide='interactive')
+  # The guide is the robot's option, not the task's.
+  with pytest.raises(ValueError, match='interactive'):
     suite.load('dclaw', 'turn_fixed', task_kwargs={'interactive': True})
+
+
+def test_guide_needs_a_task_with_a_goal_angle():
+  with pytest.raises(ValueError, match='no goal angle'):
+    suite.load('dclaw', 'pose_fixed', device_path='virtual', guide='show')
+
+
+def test_unknown_guide_mode_is_rejected():
+  with pytest.raises(ValueError, match='guide must be one of'):
+    suite.load('dclaw', 'turn_fixed', device_path='virtual', guide='on')
 
 
 def test_dkitty_stand_up_sequence_runs_and_ends_upright(monkeypatch):

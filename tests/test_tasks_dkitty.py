@@ -17,8 +17,7 @@ import numpy as np
 import pytest
 import robel_spec
 
-from robel_dm import suite
-from robel_dm.tasks import dkitty_common
+from robel_dm import geometry, suite
 
 _ORIGIN = np.array([0.0, 0.0, 0.3])  # ROBEL's kitty_frame start.
 _STANDING = np.zeros(12)
@@ -471,10 +470,10 @@ def test_euler_xyz_inverts_rx_ry_rz():
     a, c = rng.uniform(-np.pi, np.pi, 2)
     b = rng.uniform(-np.pi / 2 + 1e-3, np.pi / 2 - 1e-3)
     rotation = _rot_x(a) @ _rot_y(b) @ _rot_z(c)
-    angles = dkitty_common.euler_xyz(rotation)
+    angles = geometry.euler_xyz(rotation)
     np.testing.assert_allclose(angles, [a, b, c], atol=1e-9)
     # Nested lists work as well as arrays.
-    assert dkitty_common.euler_xyz(rotation.tolist()) == pytest.approx(angles)
+    assert geometry.euler_xyz(rotation.tolist()) == pytest.approx(angles)
 
 
 def _rotation_exp(omega, t):
@@ -496,10 +495,10 @@ def test_euler_xyz_rates_match_finite_differences():
     b = rng.uniform(-1.3, 1.3)
     start = _rot_x(a) @ _rot_y(b) @ _rot_z(c)
     omega = rng.uniform(-3, 3, 3)
-    after = np.array(dkitty_common.euler_xyz(_rotation_exp(omega, h) @ start))
-    before = np.array(dkitty_common.euler_xyz(_rotation_exp(omega, -h) @ start))
+    after = np.array(geometry.euler_xyz(_rotation_exp(omega, h) @ start))
+    before = np.array(geometry.euler_xyz(_rotation_exp(omega, -h) @ start))
     expected = [_wrap(d) / (2 * h) for d in after - before]
-    rates = dkitty_common.euler_xyz_rates((a, b, c), omega)
+    rates = geometry.euler_xyz_rates((a, b, c), omega)
     np.testing.assert_allclose(rates, expected, rtol=1e-6, atol=1e-6)
 
 
@@ -534,7 +533,7 @@ def test_root_velocities_are_world_velocity_and_euler_rates(kitty_envs):
     rates = [
       _wrap(d) / (2 * h)
       for d in np.subtract(
-        dkitty_common.euler_xyz(after), dkitty_common.euler_xyz(before)
+        geometry.euler_xyz(after), geometry.euler_xyz(before)
       )
     ]
     np.testing.assert_allclose(_signal(env, 'root_vel'), velocity, atol=1e-6)

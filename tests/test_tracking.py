@@ -11,6 +11,7 @@ import mujoco
 import numpy as np
 import pytest
 
+from robel_dm import geometry as geo
 from robel_dm import suite
 from robel_dm.hardware import natnet
 from robel_dm.hardware import tracking as tr
@@ -19,7 +20,7 @@ _WAIT = 2.0  # s, the longest any test waits for a datagram.
 
 
 def _rotation(axis, angle):
-  return tr.quat_from_rotation_vector(np.asarray(axis, float) * angle)
+  return geo.quat_from_rotation_vector(np.asarray(axis, float) * angle)
 
 
 def _quat_error(a, b) -> float:
@@ -53,7 +54,7 @@ def _moving_source(
 
   def poses():
     t = clock.now
-    q = tr.quat_multiply(quaternion, tr.quat_from_rotation_vector(omega * t))
+    q = geo.quat_multiply(quaternion, geo.quat_from_rotation_vector(omega * t))
     return {body: tr.Pose(position + velocity * t, q, t)}
 
   return tr.SimulatedSource(poses)
@@ -65,24 +66,24 @@ def _moving_source(
 def test_quaternion_helpers():
   rng = np.random.default_rng(0)
   for _ in range(20):
-    q = tr.quat_normalize(rng.normal(size=4))
-    assert _quat_error(tr.matrix_to_quat(tr.quat_to_matrix(q)), q) < 1e-12
+    q = geo.quat_normalize(rng.normal(size=4))
+    assert _quat_error(geo.matrix_to_quat(geo.quat_to_matrix(q)), q) < 1e-12
     vector = rng.uniform(-1, 1, 3)
     assert np.allclose(
-      tr.quat_to_rotation_vector(tr.quat_from_rotation_vector(vector)), vector
+      geo.quat_to_rotation_vector(geo.quat_from_rotation_vector(vector)), vector
     )
   assert np.allclose(
-    tr.matrix_to_quat(tr.Y_UP_TO_Z_UP) @ [1, 0, 0, 0], 0.5**0.5
+    geo.matrix_to_quat(tr.Y_UP_TO_Z_UP) @ [1, 0, 0, 0], 0.5**0.5
   )
   with pytest.raises(ValueError, match='proper rotation'):
-    tr.matrix_to_quat(np.diag([1.0, 1.0, -1.0]))
+    geo.matrix_to_quat(np.diag([1.0, 1.0, -1.0]))
   # Markley's mean ignores each sample's sign; a component mean would not.
   mean = _rotation([0, 0, 1], 0.3)
   samples = [
-    sign * tr.quat_multiply(mean, _rotation(rng.normal(size=3), 0.01))
+    sign * geo.quat_multiply(mean, _rotation(rng.normal(size=3), 0.01))
     for sign in (1, -1, 1, -1, -1, 1)
   ]
-  assert _quat_error(tr.average_quaternions(samples), mean) < 0.01
+  assert _quat_error(geo.average_quaternions(samples), mean) < 0.01
 
 
 # --- NatNet -------------------------------------------------------------------
@@ -246,7 +247,7 @@ def test_torso_tracker_on_natnet_reports_what_is_missing():
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:
       # Motive's default frame is y-up: a level torso has its z-axis along
       # the tracker's +y.
-      level = tr.matrix_to_quat(tr.Y_UP_TO_Z_UP.T)
+      level = geo.matrix_to_quat(tr.Y_UP_TO_Z_UP.T)
       body = natnet.RigidBody(5, (0.0, 0.4, 0.0), tuple(level))
       sender.sendto(natnet.encode_frame(1, [body]), client.address)
       deadline = time.monotonic() + _WAIT
@@ -254,7 +255,7 @@ def test_torso_tracker_on_natnet_reports_what_is_missing():
         time.sleep(0.002)
     position, quaternion, _, _ = tracker.torso_state()
     assert np.allclose(position, (0, 0, 0.4), atol=1e-6)
-    assert tr.quat_to_matrix(quaternion)[2, 2] == pytest.approx(1.0)
+    assert geo.quat_to_matrix(quaternion)[2, 2] == pytest.approx(1.0)
 
 
 # --- Frames, calibration, velocities ------------------------------------------
@@ -262,7 +263,7 @@ def test_torso_tracker_on_natnet_reports_what_is_missing():
 
 def test_y_up_tracker_frame_is_converted_to_z_up():
   clock = _Clock()
-  level_in_y_up = tr.matrix_to_quat(tr.Y_UP_TO_Z_UP.T)
+  level_in_y_up = geo.matrix_to_quat(tr.Y_UP_TO_Z_UP.T)
   source = _moving_source(
     clock, (0.5, 0.2, -0.1), level_in_y_up, velocity=(0.0, 0.3, 0.0)
   )
@@ -272,7 +273,7 @@ def test_y_up_tracker_frame_is_converted_to_z_up():
   start, quaternion, _, _ = tracker.torso_state()
   # Tracker (x, y, z) -> world (x, -z, y).
   assert np.allclose(start, (0.5, 0.1, 0.2))
-  assert tr.quat_to_matrix(quaternion)[2, 2] == pytest.approx(1.0)  # Upright.
+  assert geo.quat_to_matrix(quaternion)[2, 2] == pytest.approx(1.0)  # Upright.
   clock.now = 0.1
   end, _, velocity, _ = tracker.torso_state()
   # Moving up in the tracker (its +y) is moving up in robel_dm (+z).
@@ -283,7 +284,7 @@ def test_y_up_tracker_frame_is_converted_to_z_up():
   clock.now = 0.0
   raw = tr.TorsoTracker(source, 'torso', clock=clock)
   _, quaternion, _, _ = raw.torso_state()
-  assert abs(tr.quat_to_matrix(quaternion)[2, 2]) < 1e-9
+  assert abs(geo.quat_to_matrix(quaternion)[2, 2]) < 1e-9
 
 
 def test_origin_calibration_levels_position_and_heading_keeps_tilt():
@@ -291,10 +292,12 @@ def test_origin_calibration_levels_position_and_heading_keeps_tilt():
   rng = np.random.default_rng(1)
   # A torso rolled and pitched a little, turned by 2 rad, away from the
   # tracker's origin; in a y-up tracker frame, with jitter.
-  tilt = tr.quat_multiply(_rotation([1, 0, 0], 0.2), _rotation([0, 1, 0], -0.1))
-  torso = tr.quat_multiply(_rotation([0, 0, 1], 2.0), tilt)
-  to_tracker = tr.matrix_to_quat(tr.Y_UP_TO_Z_UP.T)
-  tracker_q = tr.quat_multiply(to_tracker, torso)
+  tilt = geo.quat_multiply(
+    _rotation([1, 0, 0], 0.2), _rotation([0, 1, 0], -0.1)
+  )
+  torso = geo.quat_multiply(_rotation([0, 0, 1], 2.0), tilt)
+  to_tracker = geo.matrix_to_quat(tr.Y_UP_TO_Z_UP.T)
+  tracker_q = geo.quat_multiply(to_tracker, torso)
   tracker_p = tr.Y_UP_TO_Z_UP.T @ np.array([1.2, -0.7, 0.25])
   samples = []
 
@@ -302,7 +305,9 @@ def test_origin_calibration_levels_position_and_heading_keeps_tilt():
     clock.now += 0.01
     jitter = rng.normal(scale=0.001, size=3)
     sign = rng.choice([-1.0, 1.0])  # Either hemisphere.
-    q = sign * tr.quat_multiply(tracker_q, _rotation(rng.normal(size=3), 0.002))
+    q = sign * geo.quat_multiply(
+      tracker_q, _rotation(rng.normal(size=3), 0.002)
+    )
     samples.append(tracker_p + jitter)
     return {'torso': tr.Pose(tracker_p + jitter, q, clock.now)}
 
@@ -319,19 +324,19 @@ def test_origin_calibration_levels_position_and_heading_keeps_tilt():
   position, quaternion, _, _ = tracker.torso_state()
   # Within the jitter of the last sample.
   assert np.allclose(position, tr.ORIGIN, atol=0.005)
-  matrix = tr.quat_to_matrix(quaternion)
-  assert tr.heading(quaternion) == pytest.approx(0.0, abs=0.01)
+  matrix = geo.quat_to_matrix(quaternion)
+  assert geo.heading(quaternion) == pytest.approx(0.0, abs=0.01)
   assert matrix[0, 1] == pytest.approx(0.0, abs=0.01) and matrix[1, 1] > 0
   # Tilt kept: the torso axes' vertical components are unchanged.
-  assert np.allclose(matrix[2], tr.quat_to_matrix(torso)[2], atol=0.01)
+  assert np.allclose(matrix[2], geo.quat_to_matrix(torso)[2], atol=0.01)
   assert tr.ORIGIN[2] == 0.3
 
 
 def test_moving_forward_after_calibration_is_moving_along_y():
   clock = _Clock()
   heading = _rotation([0, 0, 1], -2.5)
-  forward = tr.quat_to_matrix(heading) @ [0, 1, 0]  # Level frame.
-  tracked = tr.quat_multiply(tr.matrix_to_quat(tr.Y_UP_TO_Z_UP.T), heading)
+  forward = geo.quat_to_matrix(heading) @ [0, 1, 0]  # Level frame.
+  tracked = geo.quat_multiply(geo.matrix_to_quat(tr.Y_UP_TO_Z_UP.T), heading)
   velocity = tr.Y_UP_TO_Z_UP.T @ (0.2 * forward)  # Tracker frame.
   source = _moving_source(clock, (3.0, 0.3, 1.0), tracked, velocity=velocity)
   tracker = tr.TorsoTracker(
@@ -353,31 +358,31 @@ def test_finite_difference_velocities_with_mounting_and_calibration():
   # The tracked body is mounted rotated and offset on the torso.
   mount = _rotation([1, 1, 0] / np.sqrt(2), 0.7)  # Torso in body frame.
   offset = np.array([0.02, -0.05, 0.1])  # Torso origin in body frame.
-  torso0 = tr.quat_multiply(
+  torso0 = geo.quat_multiply(
     _rotation([0, 0, 1], 0.9), _rotation([1, 0, 0], 0.1)
   )
   start = np.array([0.3, 0.2, 0.25])
 
   def poses():
     t = clock.now
-    torso = tr.quat_multiply(
-      torso0, tr.quat_from_rotation_vector(omega_torso * t)
+    torso = geo.quat_multiply(
+      torso0, geo.quat_from_rotation_vector(omega_torso * t)
     )
-    body = tr.quat_multiply(torso, tr.quat_conjugate(mount))
-    body_p = start + velocity_level * t - tr.quat_to_matrix(body) @ offset
-    body_q = tr.quat_multiply(tr.matrix_to_quat(tr.Y_UP_TO_Z_UP.T), body)
+    body = geo.quat_multiply(torso, geo.quat_conjugate(mount))
+    body_p = start + velocity_level * t - geo.quat_to_matrix(body) @ offset
+    body_q = geo.quat_multiply(geo.matrix_to_quat(tr.Y_UP_TO_Z_UP.T), body)
     return {'7': tr.Pose(tr.Y_UP_TO_Z_UP.T @ body_p, body_q, t)}
 
   tracker = tr.TorsoTracker(
     tr.SimulatedSource(poses),
     7,
     frame_rotation=tr.Y_UP_TO_Z_UP,
-    body_rotation=tr.quat_to_matrix(mount),
+    body_rotation=geo.quat_to_matrix(mount),
     body_offset=offset,
     clock=clock,
   )
   calibration = tracker.calibrate_origin(samples=1)
-  yaw = tr.quat_to_matrix(tr.yaw_quaternion(-calibration.yaw))
+  yaw = geo.quat_to_matrix(geo.yaw_quaternion(-calibration.yaw))
   for step in range(1, 30):  # A 100 Hz tracker.
     clock.now = 0.01 * step
     position, quaternion, velocity, angular_velocity = tracker.torso_state()
@@ -445,8 +450,8 @@ def test_missing_or_stale_tracker_raises_clear_errors():
 def test_targets_follow_the_calibrated_world():
   clock = _Clock()
   to_tracker = tr.Y_UP_TO_Z_UP.T
-  turned = tr.quat_multiply(
-    tr.matrix_to_quat(to_tracker), tr.yaw_quaternion(math.pi / 2)
+  turned = geo.quat_multiply(
+    geo.matrix_to_quat(to_tracker), geo.yaw_quaternion(math.pi / 2)
   )
   # Level frame: torso at (1, 1, 0.3) facing -x; target 2 m ahead of it.
   level = {
@@ -566,18 +571,18 @@ def test_tracker_reproduces_the_virtual_kittys_torso():
 def test_tracker_recovers_the_torso_through_a_y_up_frame_and_a_mount():
   # The torso as a y-up tracker sees it: the world turned by 1 rad and
   # shifted, the tracked body mounted rotated and offset on the torso.
-  world_turn = tr.yaw_quaternion(1.0)
+  world_turn = geo.yaw_quaternion(1.0)
   shift = np.array([2.0, -1.0, 0.1])
   mount = _rotation([0, 1, 0], math.pi / 2)  # Torso in the body's frame.
   offset = np.array([0.0, 0.03, 0.05])  # Torso origin in the body's frame.
-  to_tracker = tr.matrix_to_quat(tr.Y_UP_TO_Z_UP.T)
+  to_tracker = geo.matrix_to_quat(tr.Y_UP_TO_Z_UP.T)
 
   def emit(position, quaternion):
-    torso = tr.quat_multiply(world_turn, quaternion)
-    body = tr.quat_multiply(torso, tr.quat_conjugate(mount))
-    body_p = tr.quat_to_matrix(world_turn) @ position + shift
-    body_p = body_p - tr.quat_to_matrix(body) @ offset
-    return tr.Y_UP_TO_Z_UP.T @ body_p, tr.quat_multiply(to_tracker, body)
+    torso = geo.quat_multiply(world_turn, quaternion)
+    body = geo.quat_multiply(torso, geo.quat_conjugate(mount))
+    body_p = geo.quat_to_matrix(world_turn) @ position + shift
+    body_p = body_p - geo.quat_to_matrix(body) @ offset
+    return tr.Y_UP_TO_Z_UP.T @ body_p, geo.quat_multiply(to_tracker, body)
 
   env, simulation, source, now = _tracked_virtual_kitty(emit)
   tracker = tr.TorsoTracker(
@@ -594,19 +599,19 @@ def test_tracker_recovers_the_torso_through_a_y_up_frame_and_a_mount():
     start, start_q, _, _ = simulation.torso_pose()
     # Calibration makes the reset pose the origin, facing +y: in the
     # simulation's world that is a turn by -heading and a shift.
-    undo = tr.yaw_quaternion(-tr.heading(start_q))
+    undo = geo.yaw_quaternion(-geo.heading(start_q))
     for action in _small_actions(env, 10):
       env.step(action)
       position, quaternion, velocity, angular_velocity = tracker.torso_state()
       truth = simulation.torso_pose()
-      expected = tr.ORIGIN + tr.quat_to_matrix(undo) @ (truth[0] - start)
+      expected = tr.ORIGIN + geo.quat_to_matrix(undo) @ (truth[0] - start)
       assert np.abs(position - expected).max() < 1e-3
-      assert _quat_error(quaternion, tr.quat_multiply(undo, truth[1])) < 1e-3
+      assert _quat_error(quaternion, geo.quat_multiply(undo, truth[1])) < 1e-3
       # Uprightness is frame-independent.
-      assert tr.quat_to_matrix(quaternion)[2, 2] == pytest.approx(
-        tr.quat_to_matrix(truth[1])[2, 2], abs=1e-6
+      assert geo.quat_to_matrix(quaternion)[2, 2] == pytest.approx(
+        geo.quat_to_matrix(truth[1])[2, 2], abs=1e-6
       )
-      assert np.abs(velocity - tr.quat_to_matrix(undo) @ truth[2]).max() < (
+      assert np.abs(velocity - geo.quat_to_matrix(undo) @ truth[2]).max() < (
         _CONTROL_RATE_VELOCITY_TOLERANCE
       )
       assert np.abs(angular_velocity - truth[3]).max() < (

@@ -4,7 +4,6 @@ from dm_control import composer, mjcf
 from dm_control.composer.observation import observable
 import numpy as np
 
-from robel_dm import assets
 from robel_dm.entities import limits, servo_robot
 
 # Joints in action order; motor IDs are the digits (docs/robel_reference.md
@@ -30,19 +29,16 @@ SAFETY_LIMITS = limits.SafetyLimits(
 )
 
 
-class DClaw(composer.Robot):
+class DClaw(servo_robot.ServoRobot):
   """The D'Claw hand, hanging from its mount point (the model's origin)."""
 
-  def _build(self, name: str = 'dclaw') -> None:
-    """Loads the model.
+  MODEL = ('dclaw', 'dclaw.xml')
+  DEFAULT_NAME = 'dclaw'
+  JOINT_NAMES = JOINT_NAMES
+  MAX_JOINT_SPEED = MAX_JOINT_SPEED
+  SAFETY_LIMITS = SAFETY_LIMITS
 
-    Args:
-      name: model name; it prefixes element names and observable keys.
-    """
-    root = servo_robot.load_model(assets.xml_path('dclaw', 'dclaw.xml'), name)
-    self._mjcf_root = root
-    self._joints = servo_robot.find_all(root, 'joint', JOINT_NAMES)
-    self._actuators = servo_robot.find_all(root, 'actuator', JOINT_NAMES)
+  def _find_parts(self, root: mjcf.RootElement) -> None:
     self._fingertip_sites = servo_robot.find_all(
       root, 'site', FINGERTIP_SITE_NAMES
     )
@@ -51,30 +47,8 @@ class DClaw(composer.Robot):
     return DClawObservables(self)
 
   @property
-  def mjcf_model(self) -> mjcf.RootElement:
-    return self._mjcf_root
-
-  @property
-  def joints(self) -> tuple[mjcf.Element, ...]:
-    """The 9 hinge joints, in action order."""
-    return self._joints
-
-  @property
-  def actuators(self) -> tuple[mjcf.Element, ...]:
-    """The 9 position actuators, in action order."""
-    return self._actuators
-
-  @property
   def fingertip_sites(self) -> tuple[mjcf.Element, ...]:
     return self._fingertip_sites
-
-  @property
-  def max_joint_speed(self) -> float:
-    return MAX_JOINT_SPEED
-
-  @property
-  def safety_limits(self) -> limits.SafetyLimits:
-    return SAFETY_LIMITS
 
 
 class DClawObservables(servo_robot.JointObservables):

@@ -7,7 +7,6 @@ from dm_control import composer, mjcf
 from dm_control.composer.observation import observable
 import numpy as np
 
-from robel_dm import assets
 from robel_dm.entities import limits, servo_robot
 
 # Joints in action order; motor IDs are the digits (docs/robel_reference.md
@@ -44,29 +43,21 @@ CROUCHED_POSE = np.tile([0.0, np.pi / 4, -np.pi / 2], 4)
 ROBEL_FRAME_ORIGIN = np.array([0.0, 0.0, 0.3])
 
 
-class DKitty(composer.Robot):
+class DKitty(servo_robot.ServoRobot):
   """The D'Kitty quadruped. Attach it with a free joint (`add_free_entity`)."""
 
-  def _build(self, name: str = 'dkitty') -> None:
-    """Loads the model.
+  MODEL = ('dkitty', 'dkitty.xml')
+  DEFAULT_NAME = 'dkitty'
+  JOINT_NAMES = JOINT_NAMES
+  MAX_JOINT_SPEED = MAX_JOINT_SPEED
+  SAFETY_LIMITS = SAFETY_LIMITS
 
-    Args:
-      name: model name; it prefixes element names and observable keys.
-    """
-    path = assets.xml_path('dkitty', 'dkitty.xml')
-    root = servo_robot.load_model(path, name)
-    self._mjcf_root = root
+  def _find_parts(self, root: mjcf.RootElement) -> None:
     (self._torso,) = servo_robot.find_all(root, 'body', ('torso',))
-    self._joints = servo_robot.find_all(root, 'joint', JOINT_NAMES)
-    self._actuators = servo_robot.find_all(root, 'actuator', JOINT_NAMES)
     self._foot_sites = servo_robot.find_all(root, 'site', FOOT_SITE_NAMES)
 
   def _build_observables(self) -> 'DKittyObservables':
     return DKittyObservables(self)
-
-  @property
-  def mjcf_model(self) -> mjcf.RootElement:
-    return self._mjcf_root
 
   @property
   def torso(self) -> mjcf.Element:
@@ -77,26 +68,8 @@ class DKitty(composer.Robot):
     return self._torso
 
   @property
-  def joints(self) -> tuple[mjcf.Element, ...]:
-    """The 12 leg joints, in action order."""
-    return self._joints
-
-  @property
-  def actuators(self) -> tuple[mjcf.Element, ...]:
-    """The 12 position actuators, in action order."""
-    return self._actuators
-
-  @property
   def foot_sites(self) -> tuple[mjcf.Element, ...]:
     return self._foot_sites
-
-  @property
-  def max_joint_speed(self) -> float:
-    return MAX_JOINT_SPEED
-
-  @property
-  def safety_limits(self) -> limits.SafetyLimits:
-    return SAFETY_LIMITS
 
 
 class DKittyObservables(servo_robot.JointObservables):

@@ -11,10 +11,12 @@ servo bus whose motors a MuJoCo simulation of the task drives, in simulated
 time (fast, deterministic, no hardware needed).
 """
 
+from collections.abc import Callable
+import dataclasses
 import signal
 import threading
 
-from dm_control import composer
+from dm_control import composer, mjcf
 
 from robel_dm import environment as environment_lib
 from robel_dm.hardware import clock as clock_lib
@@ -22,59 +24,92 @@ from robel_dm.hardware import config as config_lib
 from robel_dm.hardware import dynamixel, resets
 from robel_dm.hardware import physics as physics_lib
 from robel_dm.hardware import robot as robot_lib
+from robel_dm.hardware import robot_io as robot_io_lib
 
 VIRTUAL_DEVICE = 'virtual'
+
+# Builds the simulated environment a virtual bus's motors follow.
+SceneFactory = Callable[[], composer.Environment]
+
+
+@dataclasses.dataclass
+class Connection:
+  """What a `HardwareEnvironment` runs on.
+
+  Attributes:
+    robot: the motors.
+    clock: paces the control loop (wall or simulated time).
+    auxiliary_joints: auxiliary motor name -> the model joint it measures
+      (None for the guide, which measures none).
+    joint_limits: goal limits from the robot configuration.
+    reset: the reset procedure.
+    torso_source: a free-floating robot's torso pose, or None.
+    tracker: a `tracking.TorsoTracker`, or None.
+    guide: the guide motor's mode (`robot_io.GUIDE_MODES`), or None.
+    bus: the in-process virtual bus, or None.
+    simulation: the simulation behind the virtual bus, or None.
+    on_close: called when the environment closes.
+  """
+
+  robot: robot_lib.HardwareRobot
+  clock: clock_lib.Clock
+  auxiliary_joints: dict
+  joint_limits: dict | None
+  reset: object
+  torso_source: Callable | None = None
+  tracker: object = None
+  guide: str | None = None
+  bus: object = None
+  simulation: object = None
+  on_close: list = dataclasses.field(default_factory=list)
 
 
 class HardwareEnvironment(environment_lib.Environment):
   """A robel_dm environment on motors; see `make_environment`."""
 
-  def __init__(self, task: composer.Task, *, hardware: dict, **kwargs):
-    self._hardware = hardware
+  def __init__(self, task: composer.Task, *, connection: Connection, **kwargs):
+    self._connection = connection
     self._closed = False
-    super().__init__(task, **kwargs)
+    super().__init__(task, physics_factory=self._make_physics, **kwargs)
 
   @property
   def robot(self) -> robot_lib.HardwareRobot:
-    return self._hardware['robot']
+    return self._connection.robot
 
   @property
   def virtual_bus(self):
     """The in-process virtual bus (device 'virtual'), else None."""
-    return self._hardware.get('bus')
+    return self._connection.bus
 
   @property
   def simulated_robot(self):
     """The simulation behind the virtual bus (device 'virtual'), else None."""
-    return self._hardware.get('simulation')
+    return self._connection.simulation
 
-  def _recompile_physics(self):
-    physics = getattr(self, '_physics', None)
-    if physics:
-      physics.free()
-    self._physics = physics_lib.HardwarePhysics.from_mjcf_model(
-      self._task.root_entity.mjcf_model
-    )
-    self._physics.legacy_step = self._legacy_step
-    hardware = self._hardware
-    task = self._task
-    self._physics.attach(
-      robot=hardware['robot'],
+  def _make_physics(
+    self, mjcf_model: mjcf.RootElement
+  ) -> physics_lib.HardwarePhysics:
+    connection, task = self._connection, self.task
+    physics = physics_lib.HardwarePhysics.from_mjcf_model(mjcf_model)
+    physics.attach(
+      robot=connection.robot,
       joints=task.robot.joints,
       actuators=task.robot.actuators,
-      auxiliary_joints=hardware['auxiliary_joints'],
-      clock=hardware['clock'],
+      auxiliary_joints=connection.auxiliary_joints,
+      clock=connection.clock,
       control_timestep=task.control_timestep,
-      torso_source=hardware.get('torso_source'),
-      root_joint=hardware.get('root_joint'),
-      joint_limits=hardware.get('joint_limits'),
-      reset=hardware.get('reset'),
-      tracker=hardware.get('tracker'),
+      torso_source=connection.torso_source,
+      root_joint=task.root_joint,
+      joint_limits=connection.joint_limits,
+      reset=connection.reset,
+      tracker=connection.tracker,
     )
-
-  def _prepare_batching(self) -> None:
-    super()._prepare_batching()
-    self._direct_mujoco = False  # Every step goes through the motors.
+    task.use_robot_io(
+      robot_io_lib.HardwareRobotIO(
+        physics, tracker=connection.tracker, guide=connection.guide
+      )
+    )
+    return physics
 
   def close(self) -> None:
     """Releases the motors, closes the port (and the virtual bus)."""
@@ -82,10 +117,10 @@ class HardwareEnvironment(environment_lib.Environment):
       return
     self._closed = True
     try:
-      self._hardware['robot'].release()
-      self._hardware['robot'].client.disconnect()
+      self._connection.robot.release()
+      self._connection.robot.client.disconnect()
     finally:
-      for stop in self._hardware.get('on_close', ()):
+      for stop in self._connection.on_close:
         stop()
       super().close()
 
@@ -113,14 +148,13 @@ def make_environment(
   task: composer.Task,
   *,
   domain: str,
-  task_name: str,
   device_path: str,
   robot_config: config_lib.RobotConfig | str | None = None,
-  task_kwargs=None,
-  seed=None,
+  scene_factory: SceneFactory | None = None,
   torso_source=None,
   reset: str | None = None,
   tracker=None,
+  guide: str | None = None,
   **environment_kwargs,
 ) -> HardwareEnvironment:
   """Connects `task` to a robot.
@@ -128,12 +162,12 @@ def make_environment(
   Args:
     task: the task (built as for simulation).
     domain: 'dclaw' or 'dkitty'.
-    task_name: the task's registry name (for the virtual bus's scene).
     device_path: serial device of the Dynamixel bus, or 'virtual'.
     robot_config: a `RobotConfig`, a path to a JSON configuration, or None
       for ROBEL's configuration of the domain.
-    task_kwargs: the task's arguments (for the virtual bus's scene).
-    seed: seed of the virtual bus's scene.
+    scene_factory: with device 'virtual': builds the simulated environment
+      whose robot the virtual bus's motors follow (the simulation owns and
+      closes it).
     torso_source: for a free-floating robot (D'Kitty) on a real bus: a
       callable returning the torso's (position, quaternion, linear
       velocity, angular velocity in the torso frame).
@@ -144,6 +178,10 @@ def make_environment(
       pose source (also on the virtual bus), recalibrated at every reset,
       and the source of Orient/Walk targets if it tracks them. Closed with
       the environment.
+    guide: ROBEL's guide motor (the configuration's 'guide' motor, ID 60 on
+      the D'Claw) for a task whose goal is an angle: 'show' points it at
+      the goal; 'interactive' releases it, and a person turning it sets the
+      goal. None (default): no guide.
     **environment_kwargs: forwarded to the environment.
 
   Returns:
@@ -152,39 +190,52 @@ def make_environment(
   Raises:
     config_lib.ConfigError: for a malformed configuration.
     dynamixel.DynamixelError: if the port or a motor is not there.
-    ValueError: if the task needs a sensor this robot setup lacks.
+    ValueError: if the task needs a sensor this robot setup lacks, or for a
+      guide the task cannot use.
   """
   if isinstance(robot_config, str):
     robot_config = config_lib.load(robot_config)
   robot_config = robot_config or config_lib.default(domain)
+  task_label = f'{domain} task {type(task).__name__}'
   if [m.name for m in robot_config.joints] != [
     j.name for j in task.robot.joints
   ]:
     raise config_lib.ConfigError(
       f'{robot_config.source}: its joints do not match the {domain} model'
     )
-  # Motors measuring a model joint first: their readings map onto qpos.
-  auxiliary_joints = dict(
-    sorted(
-      task.hardware_auxiliary_joints().items(), key=lambda item: item[1] is None
-    )
-  )
+  auxiliary_joints = dict(task.auxiliary_joints())
+  if guide is not None:
+    if guide not in robot_io_lib.GUIDE_MODES:
+      raise ValueError(
+        f'guide must be one of {robot_io_lib.GUIDE_MODES}, got {guide!r}'
+      )
+    if not task.goal_is_an_angle:
+      raise ValueError(
+        f'guide={guide!r}: the {task_label} has no goal angle to show or set'
+      )
+    # The guide measures no model joint: it comes after those that do.
+    auxiliary_joints[robot_io_lib.GUIDE_MOTOR] = None
   auxiliary = []
   for name in auxiliary_joints:
     motor = robot_config.auxiliary_motor(name)
     if motor is None:
       raise config_lib.ConfigError(
-        f'{robot_config.source}: {task_name} reads the {name} motor, which '
-        'the configuration lacks'
+        f'{robot_config.source}: the {task_label} reads the {name} motor, '
+        'which the configuration lacks'
       )
     auxiliary.append(motor)
   free_floating = task.root_joint is not None
   if tracker is not None:
     torso_source = tracker.torso_state
   virtual = device_path == VIRTUAL_DEVICE
+  if virtual and scene_factory is None:
+    raise ValueError(
+      "device_path='virtual' needs a scene_factory that builds the simulated "
+      'robot (suite.load passes one)'
+    )
   if free_floating and not virtual and torso_source is None:
     raise ValueError(
-      f'{domain}/{task_name} needs the torso pose (upright, heading, '
+      f'the {task_label} needs the torso pose (upright, heading, '
       'position) from a motion tracker: pass tracker= (a '
       'robel_dm.hardware.tracking.TorsoTracker, e.g. on a NatNet stream; '
       "see docs/bringup.md), or use device_path='virtual' for the simulated "
@@ -195,17 +246,16 @@ def make_environment(
     # ROBEL scripts the D'Claw's object tasks' reset. The D'Kitty's scripted
     # stand-up is opt-in: in simulation it gets up from a crouch but not
     # from lying on its back (see `resets.DKittyScriptedReset`).
-    scripted = domain == 'dclaw' and auxiliary_joints
+    scripted = domain == 'dclaw' and task.auxiliary_joints()
     reset = 'scripted' if scripted else 'move'
   if not free_floating:  # Checked before anything is opened.
     reset_procedure = resets.make(reset, robot_config, domain)
   on_close = [] if tracker is None else [tracker.close]
+  bus = simulation = None
   if virtual:
     from robel_dm.hardware import sim_robot, virtual_bus  # noqa: PLC0415
 
-    simulation = sim_robot.SimulatedRobot(
-      domain, task_name, robot_config, task_kwargs=task_kwargs, seed=seed
-    )
+    simulation = sim_robot.SimulatedRobot(scene_factory(), robot_config)
     servos = virtual_bus.make_servos(virtual_bus.robot_motor_ids(robot_config))
     bus = virtual_bus.Bus(servos, driver=simulation)
     server = virtual_bus.PtyBusServer(bus).start()
@@ -233,21 +283,23 @@ def make_environment(
       )
     else:
       clock = clock_lib.WallClock()
-    hardware = {
-      'bus': bus if virtual else None,
-      'simulation': simulation if virtual else None,
-      'robot': robot,
-      'auxiliary_joints': auxiliary_joints,
-      'clock': clock,
-      'torso_source': torso_source,
-      'root_joint': task.root_joint,
-      'joint_limits': robot_config.limits,
-      'reset': reset_procedure,
-      'tracker': tracker,
-      'on_close': on_close,
-    }
+    connection = Connection(
+      robot=robot,
+      clock=clock,
+      auxiliary_joints=auxiliary_joints,
+      joint_limits=robot_config.limits,
+      reset=reset_procedure,
+      torso_source=torso_source,
+      tracker=tracker,
+      guide=guide,
+      bus=bus,
+      simulation=simulation,
+      on_close=on_close,
+    )
     _install_sigterm_handler()
-    return HardwareEnvironment(task, hardware=hardware, **environment_kwargs)
+    return HardwareEnvironment(
+      task, connection=connection, **environment_kwargs
+    )
   except BaseException:
     client.disconnect()
     for stop in on_close:

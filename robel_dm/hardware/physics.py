@@ -58,23 +58,12 @@ class HardwarePhysics(mjcf.Physics):
         configuration, narrowing the action range.
       reset: the reset procedure (see `resets`); a blocking move if None.
       tracker: a `tracking.TorsoTracker`, or None. Its origin is
-        recalibrated after every reset (as ROBEL did), and its target and
-        heading bodies, if any, are offered to the task as
-        `tracked_target` / `tracked_heading` (callables returning x, y).
+        recalibrated after every reset (as ROBEL did).
     """
     self._robot = robot
     self._clock = clock
     self._reset = reset or resets.MoveReset()
     self._tracker = tracker
-    has = lambda body: tracker is not None and body is not None  # noqa: E731
-    self.tracked_target = (
-      tracker.target_position if has(getattr(tracker, 'target_body', None))
-      else None
-    )  # fmt: skip
-    self.tracked_heading = (
-      tracker.heading_position if has(getattr(tracker, 'heading_body', None))
-      else None
-    )  # fmt: skip
     self._period = control_timestep
     self._substeps = max(1, round(control_timestep / self.model.opt.timestep))
     self._pending_substeps = 0
@@ -95,7 +84,7 @@ class HardwarePhysics(mjcf.Physics):
     self._auxiliary_names = tuple(modelled)
     ctrl_range = self.bind(list(actuators)).ctrlrange
     robot.set_joint_limits(ctrl_range[:, 0], ctrl_range[:, 1], joint_limits)
-    self.motor_currents = np.zeros(len(joints))  # mA, read by the task.
+    self.motor_currents = np.zeros(len(joints))  # mA, updated every step.
     self._torso_source = torso_source
     if torso_source is not None:
       root = self.bind(root_joint)

@@ -21,6 +21,7 @@ import logging
 
 import numpy as np
 
+from robel_dm import geometry
 from robel_dm.hardware import clock as clock_lib
 from robel_dm.hardware import robot as robot_lib
 
@@ -333,9 +334,7 @@ def _pair(triple) -> np.ndarray:
 def upright_and_height(torso_source) -> tuple[float, float]:
   """The torso's uprightness (cosine of its tilt) and height, m."""
   position, quaternion, _, _ = torso_source()
-  w, x, y, z = quaternion
-  # R[2, 2] of the torso's rotation: the cosine of its tilt.
-  return 1.0 - 2.0 * (x * x + y * y), float(position[2])
+  return geometry.upright(quaternion), float(position[2])
 
 
 class DKittyScriptedReset:

@@ -9,16 +9,14 @@ request (`advance`, used by a `SimulatedClock`: deterministic, as fast as
 the machine allows) or with the wall clock (a standalone bus).
 """
 
-import math
 import threading
 import time
 
+from dm_control import composer
 import mujoco
 
-from robel_dm import suite
 from robel_dm.hardware import config as config_lib
 from robel_dm.hardware import control_table as table
-from robel_dm.tasks import base
 
 # Position gain (N m/rad) and damping (N m s/rad) of an auxiliary motor
 # holding a goal (the valve during resets); it has no actuator in the model.
@@ -34,33 +32,27 @@ class SimulatedRobot:
 
   def __init__(
     self,
-    domain: str,
-    task: str,
-    robot_config: config_lib.RobotConfig | None = None,
-    task_kwargs=None,
-    seed: int | None = 0,
+    scene: composer.Environment,
+    robot_config: config_lib.RobotConfig,
     realtime: bool = False,
   ):
     """Builds the simulation.
 
     Args:
-      domain: 'dclaw' or 'dkitty'.
-      task: the task whose scene to simulate (e.g. 'turn_fixed': with valve).
-      robot_config: motor IDs and calibration; ROBEL's by default.
-      task_kwargs: task arguments (e.g. the valve variant).
-      seed: seed of the simulated scene.
+      scene: a simulated environment of a task whose scene holds every
+        joint the configuration's motors measure (e.g. a D'Claw valve task
+        for the valve motor), built with no time limit. The simulation owns
+        it from now on (and closes it).
+      robot_config: motor IDs and calibration.
       realtime: advance with the wall clock on every bus access, instead
         of only when `advance` is called.
+
+    Raises:
+      config_lib.ConfigError: if the configuration's joints are not the
+        scene's robot's.
     """
-    self._config = robot_config or config_lib.default(domain)
-    scene_kwargs = {
-      key: value
-      for key, value in (task_kwargs or {}).items()
-      if key not in base.HARDWARE_ONLY_ARGUMENTS
-    }
-    self._env = suite.load(
-      domain, task, seed=seed, task_kwargs=scene_kwargs, time_limit=math.inf
-    )
+    self._config = robot_config
+    self._env = scene
     self._env.reset()
     physics = self._env.physics
     self._model, self._data = physics.model.ptr, physics.data.ptr
@@ -74,7 +66,6 @@ class SimulatedRobot:
         f'{[m.name for m in self._config.joints]} do not match the model '
         f'{joint_names}'
       )
-    auxiliary_joints = task_instance.hardware_auxiliary_joints()
     # Motor ID -> (motor, qpos address, dof address, actuator id or None).
     self._motors = {}
     bound = physics.bind(robot.joints)
@@ -86,9 +77,9 @@ class SimulatedRobot:
         int(bound.dofadr[i]),
         int(actuator_ids[i]),
       )
-    for name, joint in auxiliary_joints.items():
+    for name, joint in task_instance.auxiliary_joints().items():
       motor = self._config.auxiliary_motor(name)
-      if motor is not None and joint is not None:
+      if motor is not None:
         element = physics.bind(joint)
         self._motors[motor.id] = (
           motor,

@@ -27,18 +27,19 @@ Frames. A raw pose is the tracked body's pose in the tracker's world frame.
      origin (0, 0, 0.3) facing +y (yaw 0), as ROBEL did. Tilt is kept:
      a rotation about world z leaves the torso's uprightness unchanged.
 
-All quaternions are (w, x, y, z), as in MuJoCo.
+All quaternions are (w, x, y, z), as in MuJoCo; their arithmetic is in
+`robel_dm.geometry`.
 """
 
 from collections.abc import Callable, Mapping
 import dataclasses
 import logging
-import math
 import time
 from typing import Protocol
 
 import numpy as np
 
+from robel_dm import geometry
 from robel_dm.entities import dkitty
 
 # Maps a y-up tracker frame (x, y up, z) to robel_dm's z-up world: the
@@ -52,9 +53,6 @@ ORIGIN = dkitty.ROBEL_FRAME_ORIGIN
 
 DEFAULT_STALE_TIMEOUT = 0.5  # s
 _IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
-# Below this horizontal length of the torso's forward axis the heading is
-# taken from its x-axis instead (the torso points up or down).
-_MIN_HEADING_NORM = 1e-3
 
 
 class TrackingError(RuntimeError):
@@ -95,170 +93,16 @@ class TrackerSource(Protocol):
     """Releases the source (sockets, threads)."""
 
 
-# --- Quaternions (w, x, y, z) ------------------------------------------------
-
-
-def quat_multiply(a, b) -> np.ndarray:
-  """The Hamilton product a b (rotation b, then a)."""
-  aw, ax, ay, az = a
-  bw, bx, by, bz = b
-  return np.array(
-    [
-      aw * bw - ax * bx - ay * by - az * bz,
-      aw * bx + ax * bw + ay * bz - az * by,
-      aw * by - ax * bz + ay * bw + az * bx,
-      aw * bz + ax * by - ay * bx + az * bw,
-    ]
-  )
-
-
-def quat_conjugate(q) -> np.ndarray:
-  return np.array([q[0], -q[1], -q[2], -q[3]], dtype=float)
-
-
-def quat_normalize(q) -> np.ndarray:
-  q = np.asarray(q, dtype=float)
-  norm = np.linalg.norm(q)
-  if not np.isfinite(norm) or norm < 1e-9:
-    raise ValueError(f'not a rotation quaternion: {q}')
-  return q / norm
-
-
-def quat_to_matrix(q) -> np.ndarray:
-  """The rotation matrix of a unit quaternion."""
-  w, x, y, z = quat_normalize(q)
-  return np.array(
-    [
-      [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ]
-  )
-
-
-def matrix_to_quat(matrix) -> np.ndarray:
-  """The unit quaternion (w >= 0) of a rotation matrix.
-
-  Raises:
-    ValueError: if `matrix` is not a proper rotation (orthonormal, det +1).
-  """
-  m = np.asarray(matrix, dtype=float)
-  if (
-    m.shape != (3, 3)
-    or not np.allclose(m @ m.T, np.eye(3), atol=1e-6)
-    or np.linalg.det(m) < 0
-  ):
-    raise ValueError(f'not a proper rotation matrix:\n{m}')
-  # The largest of 4 w^2, 4 x^2, 4 y^2, 4 z^2 gives a well-conditioned
-  # division (Shepperd's method).
-  trace = np.trace(m)
-  candidates = [trace, m[0, 0], m[1, 1], m[2, 2]]
-  k = int(np.argmax(candidates))
-  if k == 0:
-    s = 2.0 * math.sqrt(1.0 + trace)
-    q = [
-      s / 4,
-      (m[2, 1] - m[1, 2]) / s,
-      (m[0, 2] - m[2, 0]) / s,
-      (m[1, 0] - m[0, 1]) / s,
-    ]
-  elif k == 1:
-    s = 2.0 * math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-    q = [
-      (m[2, 1] - m[1, 2]) / s,
-      s / 4,
-      (m[0, 1] + m[1, 0]) / s,
-      (m[0, 2] + m[2, 0]) / s,
-    ]
-  elif k == 2:
-    s = 2.0 * math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-    q = [
-      (m[0, 2] - m[2, 0]) / s,
-      (m[0, 1] + m[1, 0]) / s,
-      s / 4,
-      (m[1, 2] + m[2, 1]) / s,
-    ]
-  else:
-    s = 2.0 * math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-    q = [
-      (m[1, 0] - m[0, 1]) / s,
-      (m[0, 2] + m[2, 0]) / s,
-      (m[1, 2] + m[2, 1]) / s,
-      s / 4,
-    ]
-  q = quat_normalize(q)
-  return -q if q[0] < 0 else q
-
-
-def quat_from_rotation_vector(vector) -> np.ndarray:
-  """exp: the rotation by |vector| rad about vector's direction."""
-  vector = np.asarray(vector, dtype=float)
-  angle = float(np.linalg.norm(vector))
-  if angle < 1e-12:
-    return np.array([1.0, *(vector / 2)])
-  axis = vector / angle
-  return np.array([math.cos(angle / 2), *(math.sin(angle / 2) * axis)])
-
-
-def quat_to_rotation_vector(q) -> np.ndarray:
-  """log: the rotation vector (axis x angle, angle in [0, pi]) of q."""
-  q = quat_normalize(q)
-  if q[0] < 0:  # The same rotation; this sign gives the shorter way.
-    q = -q
-  sine = float(np.linalg.norm(q[1:]))
-  if sine < 1e-12:
-    return 2.0 * q[1:]
-  return 2.0 * math.atan2(sine, q[0]) * q[1:] / sine
-
-
-def yaw_quaternion(yaw: float) -> np.ndarray:
-  """The rotation by `yaw` rad about z."""
-  return np.array([math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)])
-
-
-def heading(q) -> float:
-  """The yaw of an orientation: the angle about z from +y to the body's
-  forward (y) axis projected on the floor (its x-axis if y is vertical)."""
-  m = quat_to_matrix(q)
-  forward = m[:, 1]
-  if math.hypot(forward[0], forward[1]) > _MIN_HEADING_NORM:
-    return math.atan2(-forward[0], forward[1])
-  return math.atan2(m[1, 0], m[0, 0])
-
-
-def average_quaternions(quaternions, weights=None) -> np.ndarray:
-  """Markley's average of unit quaternions.
-
-  The average is the unit quaternion q maximizing sum_i w_i (q_i . q)^2,
-  i.e. the eigenvector of M = sum_i w_i q_i q_i^T with the largest
-  eigenvalue (F. L. Markley, Y. Cheng, J. L. Crassidis, Y. Oshman,
-  "Averaging Quaternions", J. Guidance, Control, and Dynamics 30(4), 2007).
-  It minimizes the weighted sum of squared Frobenius distances between the
-  rotation matrices, and is insensitive to each q_i's sign (q and -q are
-  the same rotation), unlike a component-wise mean.
-
-  Args:
-    quaternions: (N, 4) quaternions (w, x, y, z); need not be unit.
-    weights: (N,) non-negative weights; equal by default.
-
-  Returns:
-    The average (w >= 0).
-  """
-  q = np.array([quat_normalize(x) for x in quaternions])
-  w = np.ones(len(q)) if weights is None else np.asarray(weights, float)
-  m = (q * w[:, None]).T @ q
-  _, vectors = np.linalg.eigh(m)  # Eigenvalues ascending.
-  mean = vectors[:, -1]
-  return -mean if mean[0] < 0 else mean
+# --- Rotations ---------------------------------------------------------------
 
 
 def _as_quaternion(rotation) -> np.ndarray:
   """A rotation given as a 3x3 matrix or a (w, x, y, z) quaternion."""
   rotation = np.asarray(rotation, dtype=float)
   if rotation.shape == (3, 3):
-    return matrix_to_quat(rotation)
+    return geometry.matrix_to_quat(rotation)
   if rotation.shape == (4,):
-    return quat_normalize(rotation)
+    return geometry.quat_normalize(rotation)
   raise ValueError(
     f'a rotation is a 3x3 matrix or a quaternion, not shape {rotation.shape}'
   )
@@ -438,10 +282,14 @@ class TorsoTracker:
 
   def _level_pose(self, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
     """The torso pose in the z-up tracker frame from a raw body pose."""
-    tracked_q = quat_multiply(self._frame_q, quat_normalize(pose.quaternion))
-    position = quat_to_matrix(self._frame_q) @ pose.position
-    position = position + quat_to_matrix(tracked_q) @ self._body_offset
-    return position, quat_normalize(quat_multiply(tracked_q, self._body_q))
+    tracked_q = geometry.quat_multiply(
+      self._frame_q, geometry.quat_normalize(pose.quaternion)
+    )
+    position = geometry.quat_to_matrix(self._frame_q) @ pose.position
+    position = position + geometry.quat_to_matrix(tracked_q) @ self._body_offset
+    return position, geometry.quat_normalize(
+      geometry.quat_multiply(tracked_q, self._body_q)
+    )
 
   def _add_torso_sample(self, pose: Pose) -> None:
     position, quaternion = self._level_pose(pose)
@@ -460,8 +308,10 @@ class TorsoTracker:
         self._angular_velocity[:] = 0.0
       elif dt > 0:
         velocity = (position - self._position) / dt
-        relative = quat_multiply(quat_conjugate(self._quaternion), quaternion)
-        angular_velocity = quat_to_rotation_vector(relative) / dt
+        relative = geometry.quat_multiply(
+          geometry.quat_conjugate(self._quaternion), quaternion
+        )
+        angular_velocity = geometry.quat_to_rotation_vector(relative) / dt
         gain = dt / (self._tau + dt)
         self._velocity += gain * (velocity - self._velocity)
         self._angular_velocity += gain * (
@@ -503,7 +353,7 @@ class TorsoTracker:
       )
     return (
       self._world_m @ self._position + self._world_t,
-      quat_multiply(self._world_q, self._quaternion),
+      geometry.quat_multiply(self._world_q, self._quaternion),
       self._world_m @ self._velocity,
       self._angular_velocity.copy(),
     )
@@ -552,9 +402,9 @@ class TorsoTracker:
       time.sleep(poll_interval)
     positions = np.array(positions)
     mean_position = positions.mean(axis=0)
-    yaw = heading(average_quaternions(quaternions))
-    self._world_q = yaw_quaternion(-yaw)
-    self._world_m = quat_to_matrix(self._world_q)
+    yaw = geometry.heading(geometry.average_quaternions(quaternions))
+    self._world_q = geometry.yaw_quaternion(-yaw)
+    self._world_m = geometry.quat_to_matrix(self._world_q)
     self._world_t = ORIGIN - self._world_m @ mean_position
     spread = float(np.max(np.linalg.norm(positions - mean_position, axis=1)))
     if spread > 0.01:
@@ -602,7 +452,7 @@ class TorsoTracker:
         f'no pose received for the {role} body {name!r} yet '
         f'({self._describe_source()})'
       )
-    level = quat_to_matrix(self._frame_q) @ pose.position
+    level = geometry.quat_to_matrix(self._frame_q) @ pose.position
     return (self._world_m @ level + self._world_t)[:2]
 
   # --- Misc ------------------------------------------------------------------

@@ -42,6 +42,7 @@ import contextlib
 import dataclasses
 import errno
 import logging
+import math
 import operator
 import os
 import select
@@ -1427,14 +1428,17 @@ _SIMULATED_SCENES = {'dclaw': 'turn_fixed', 'dkitty': 'stand_fixed'}
 
 
 def _simulated_robot(robot_config: config.RobotConfig) -> Driver:
-  from robel_dm.hardware import sim_robot  # noqa: PLC0415 (needs MuJoCo)
+  # Imported here: they need MuJoCo, and the command line builds the scene.
+  from robel_dm import suite  # noqa: PLC0415
+  from robel_dm.hardware import sim_robot  # noqa: PLC0415
 
-  return sim_robot.SimulatedRobot(
+  scene = suite.load(
     robot_config.robot,
     _SIMULATED_SCENES[robot_config.robot],
-    robot_config,
-    realtime=True,
+    seed=0,
+    time_limit=math.inf,
   )
+  return sim_robot.SimulatedRobot(scene, robot_config, realtime=True)
 
 
 DRIVERS: dict[str, DriverFactory] = {

@@ -1,14 +1,18 @@
 """Machinery shared by every robel_dm task.
 
-A `RobelTask` maps normalized actions to joint targets exactly as ROBEL does,
-reads the robot (and object) joints once per control step, optionally adds
-ROBEL's observation noise to that reading, and computes observation features,
-reward terms, score, success and safety counters once, in `after_step`.
-Observables only hand out those cached arrays (composer copies them), so every
-signal in a timestep comes from the same physics state.
+A `RobelTask` validates normalized actions and hands them to its robot's
+action map (ROBEL's map with the velocity clamp), reads the robot (and
+object) joints once per control step, optionally adds ROBEL's observation
+noise to that reading, and then, in this order, asks the task for its
+observation features, its named reward terms, its score, its success and
+whether the episode has failed. Observables only hand out the cached arrays
+(composer copies them), so every signal in a timestep comes from the same
+physics state.
 
 Observation noise reaches only what the agent observes; reward, score, success
 and safety are computed from the true state (see README, fidelity notes).
+What a task needs from the robot beyond the physics state (measured
+currents, a goal display, tracked targets) it asks of its `RobotIO`.
 """
 
 import collections
@@ -20,6 +24,8 @@ from dm_env import specs
 import numpy as np
 
 from robel_dm import constants, environment, randomization
+from robel_dm import robot_io as robot_io_lib
+from robel_dm.entities import servo_robot
 
 # Names of the signal observables every task provides.
 SCORE = 'score'
@@ -35,20 +41,6 @@ SAFETY_FIELDS = ('position', 'velocity', 'current')
 _ACTION_BOUND_TOLERANCE = 1e-6
 ACTION_BOUND_MODES = ('raise', 'clip')
 
-# Task arguments that only mean something on a robot (the scene a simulated
-# robot needs is the same without them).
-HARDWARE_ONLY_ARGUMENTS = frozenset({'use_guide', 'interactive'})
-
-
-def wrap_angle(angle):
-  """Wraps radians to [-pi, pi)."""
-  return (angle + np.pi) % (2 * np.pi) - np.pi
-
-
-def norm(vector: np.ndarray) -> float:
-  """Euclidean norm of a small vector (cheaper than np.linalg.norm)."""
-  return math.sqrt(float(np.dot(vector, vector)))
-
 
 def mocap_index(physics, body: mjcf.Element) -> int:
   """Index of a mocap body in `data.mocap_pos` / `data.mocap_quat`."""
@@ -56,23 +48,15 @@ def mocap_index(physics, body: mjcf.Element) -> int:
   return int(physics.model.body_mocapid[body_id])
 
 
-def _address_index(addresses) -> slice | np.ndarray:
-  """A slice if the addresses are contiguous and increasing (cheaper reads)."""
-  addresses = np.asarray(addresses, dtype=int).ravel()
-  if addresses.size and np.array_equal(
-    addresses, np.arange(addresses[0], addresses[0] + addresses.size)
-  ):
-    return slice(int(addresses[0]), int(addresses[-1]) + 1)
-  return addresses
-
-
 class RobelTask(composer.Task):
   """Base class of robel_dm tasks (one level below `composer.Task`).
 
   Subclasses define the class attributes `FEATURES` (observation name ->
   size, in ROBEL's observation-dict order), `DEFAULT_OBSERVATION_KEYS`
-  (ROBEL's default flattened observation, in order) and `REWARD_TERMS`, and
-  implement `_initialize_state` and `_compute`.
+  (ROBEL's default flattened observation, in order) and `REWARD_TERMS` (the
+  names of the reward's terms, in order), and implement `_initialize_state`,
+  `_compute_features`, `_compute_reward_terms`, `_compute_score` and
+  `_compute_success` (and `_compute_failure` if an episode can fail).
   """
 
   FEATURES: dict[str, int] = {}
@@ -83,7 +67,7 @@ class RobelTask(composer.Task):
     self,
     *,
     arena: composer.Arena,
-    robot: composer.Robot,
+    robot: servo_robot.ServoRobot,
     control_timestep: float,
     episode_steps: int,
     extra_sensed_joints: tuple[mjcf.Element, ...] = (),
@@ -167,7 +151,7 @@ class RobelTask(composer.Task):
     self._num_robot_joints = len(robot.joints)
     if self._num_robot_joints != num_actions:
       raise ValueError('the robot needs one position actuator per joint')
-    self._ctrl_target = np.zeros(num_actions)
+    self._robot_io: robot_io_lib.RobotIO = robot_io_lib.SIMULATION
     # Reused buffers, to avoid per-step arrays.
     self._scratch = np.zeros(num_actions)
     self._flags = np.zeros(num_actions, dtype=bool)
@@ -184,10 +168,9 @@ class RobelTask(composer.Task):
     # Views of the robot's share of the true state.
     self._robot_qpos = self._qpos[: self._num_robot_joints]
     self._robot_qvel = self._qvel[: self._num_robot_joints]
-    # Motor currents, mA: measured on hardware; simulation models none, so
-    # the current counter stays 0 there.
-    self._current = np.zeros(self._num_robot_joints)
-    self._current_measured = False
+    # Motor currents, mA, when the robot measures them (see `RobotIO`);
+    # simulation models none, and the current counter stays 0 there.
+    self._current = None
 
     # All features are views of one buffer, in FEATURES order, so that
     # neighbouring features can be written with one assignment.
@@ -203,10 +186,10 @@ class RobelTask(composer.Task):
     if self._last_action.size != num_actions:
       raise ValueError(f'last_action must have {num_actions} entries')
     self._reward = 0.0
-    # Set by `_compute` when the episode has failed and must end.
+    # Whether the episode has failed and must end (discount 0).
     self._failed = False
     self._error_sum, self._error_count = 0.0, 0
-    self._reward_terms = (0.0,) * len(self.REWARD_TERMS)
+    self._reward_terms = dict.fromkeys(self.REWARD_TERMS, 0.0)
     self._score = np.zeros(())
     self._success = np.zeros((), dtype=bool)
     self._safety = np.zeros(len(SAFETY_FIELDS), dtype=np.int32)
@@ -218,8 +201,10 @@ class RobelTask(composer.Task):
     self._add_observable(SCORE, self._score)
     self._add_observable(SUCCESS, self._success)
     self._add_observable(SAFETY, self._safety)
-    # Built only when enabled: the terms are kept as a tuple of floats.
-    terms = observable.Generic(lambda physics: np.array(self._reward_terms))
+    # Built only when enabled: the terms are kept as a dict of floats.
+    terms = observable.Generic(
+      lambda physics: np.array(list(self._reward_terms.values()))
+    )
     terms.enabled = False
     self._task_observables[REWARD_TERMS] = terms
 
@@ -290,8 +275,24 @@ class RobelTask(composer.Task):
 
   @property
   def reward_terms(self) -> dict[str, float]:
-    """The reward's terms at the last step; the reward is their sum."""
-    return dict(zip(self.REWARD_TERMS, self._reward_terms, strict=True))
+    """The reward's named terms at the last step; the reward is their sum."""
+    return dict(self._reward_terms)
+
+  @property
+  def robot_io(self) -> robot_io_lib.RobotIO:
+    """What the task asks of the robot beyond the physics state."""
+    return self._robot_io
+
+  def use_robot_io(self, robot_io: robot_io_lib.RobotIO) -> None:
+    """Runs the task on a robot with its own inputs and outputs (a real
+    robot's); call before the environment compiles the model.
+
+    Raises:
+      TypeError: if `robot_io` does not implement `RobotIO`.
+    """
+    if not isinstance(robot_io, robot_io_lib.RobotIO):
+      raise TypeError(f'{robot_io!r} does not implement RobotIO')
+    self._robot_io = robot_io
 
   def flatten_observation(self, observation) -> np.ndarray:
     """Concatenates the agent's observations in `agent_observation_keys` order.
@@ -306,16 +307,19 @@ class RobelTask(composer.Task):
       [np.ravel(observation[key]) for key in self._agent_keys]
     )
 
-  def hardware_auxiliary_joints(self) -> dict[str, mjcf.Element]:
-    """Non-robot motors the task uses on hardware: name -> model joint.
+  def auxiliary_joints(self) -> dict[str, mjcf.Element]:
+    """Non-robot joints the task observes: name -> model joint.
 
-    The names match a robot configuration's auxiliary motors (e.g. the
-    D'Claw's 'valve' encoder); the joint is None for a motor that measures
-    no joint of the model (the D'Claw's guide), whose angle the physics
-    then exposes as `auxiliary_angles[name]` and whose goal the task sets
-    in `auxiliary_goals[name]`.
+    On a real robot each is measured by the robot configuration's auxiliary
+    motor of that name (e.g. the D'Claw's 'valve' encoder).
     """
     return {}
+
+  @property
+  def goal_is_an_angle(self) -> bool:
+    """Whether the task's goal is one angle, which a guide motor can show
+    (`RobotIO.show_goal`) or a person can set (`goal_from_person`)."""
+    return False
 
   def reference_action(self, physics) -> np.ndarray:
     """The action of the task's scripted reference controller.
@@ -330,8 +334,7 @@ class RobelTask(composer.Task):
 
   def normalize_joint_targets(self, targets: np.ndarray) -> np.ndarray:
     """Maps joint angles (rad) to actions in [-1, 1]; inverse of the map."""
-    action = (np.asarray(targets) - self._range_center) / self._range_half
-    return np.clip(action, -1.0, 1.0)
+    return self._action_map.normalize(targets)
 
   def action_spec(self, physics) -> specs.BoundedArray:
     del physics
@@ -348,40 +351,24 @@ class RobelTask(composer.Task):
 
   def after_compile(self, physics, random_state) -> None:
     del random_state
-    robot_joints = physics.bind(self._robot.joints)
     sensed = physics.bind(self._sensed_joints)
-    self._qpos_index = _address_index(sensed.qposadr)
-    self._qvel_index = _address_index(sensed.dofadr)
-    self._robot_qpos_index = _address_index(robot_joints.qposadr)
-    self._ctrl_index = _address_index(
-      physics.bind(self._robot.actuators).element_id
-    )
-    ctrl_range = physics.bind(self._robot.actuators).ctrlrange
-    self._range_low = ctrl_range[:, 0].copy()
-    self._range_high = ctrl_range[:, 1].copy()
-    self._range_center = (self._range_low + self._range_high) / 2
-    self._range_half = (self._range_high - self._range_low) / 2
-    self._max_step = self._robot.max_joint_speed * self.control_timestep
+    self._qpos_index = servo_robot.address_index(sensed.qposadr)
+    self._qvel_index = servo_robot.address_index(sensed.dofadr)
+    self._action_map = self._robot.action_map(physics, self.control_timestep)
+    self._safe_low, self._safe_high = self._robot.safe_bounds(physics)
     limits = self._robot.safety_limits
-    if limits.position_range == 'joint':
-      position_range = physics.bind(self._robot.joints).range
-      low, high = position_range[:, 0].copy(), position_range[:, 1].copy()
-    else:
-      low, high = self._range_low, self._range_high
-    self._safe_low = low + limits.position_margin
-    self._safe_high = high - limits.position_margin
     self._max_safe_speed = limits.max_speed
     self._max_safe_current = limits.max_current
-    # The hot path reads and writes these views of MjData directly.
+    # The hot path reads these views of MjData directly.
     self._data_qpos = physics.data.qpos
     self._data_qvel = physics.data.qvel
-    self._data_ctrl = physics.data.ctrl
     self._mjdata = physics.data.ptr  # The raw mujoco.MjData (fast `time`).
     # ROBEL's noise half-widths per sensed joint: positions over the action
     # range (given widths for extra joints), velocities over +-max speed.
     speed = self._robot.max_joint_speed
+    action_map = self._action_map
     position_widths = np.concatenate(
-      [self._range_high - self._range_low, self._extra_position_widths]
+      [action_map.high - action_map.low, self._extra_position_widths]
     )
     velocity_widths = np.concatenate(
       [np.full(self._num_robot_joints, 2 * speed), self._extra_velocity_widths]
@@ -398,12 +385,7 @@ class RobelTask(composer.Task):
     )
     if self._randomizer is not None:
       self._randomizer.after_compile(physics)
-    # A hardware physics measures the motors' currents (mA); simulation has
-    # none, and the current counter then stays 0.
-    currents = getattr(physics, 'motor_currents', None)
-    self._current_measured = currents is not None
-    if currents is not None:
-      self._current = currents
+    self._current = self._robot_io.motor_currents
 
   def initialize_episode(self, physics, random_state) -> None:
     if self._randomizer is not None:
@@ -412,31 +394,15 @@ class RobelTask(composer.Task):
     self._error_sum, self._error_count = 0.0, 0
     self._failed = False
     self._initialize_state(physics, random_state)
-    # On hardware the motors must be driven to the state just set, and the
-    # first observation must come from where they actually are.
-    realize = getattr(physics, 'realize_initial_state', None)
-    if realize is not None:
-      realize()
+    # A real robot must be moved to the state just set, and the first
+    # observation must come from where it actually is.
+    self._robot_io.realize_initial_state()
     self._update(physics, random_state)
 
   def before_step(self, physics, action, random_state) -> None:
-    del random_state
-    last_action, target, delta = (
-      self._last_action,
-      self._ctrl_target,
-      self._scratch,
-    )
-    last_action[:] = self._validated_action(action)
-    # ROBEL's action map: denormalize to the joint range, then limit the
-    # change from the current position to max_speed * control_timestep.
-    np.multiply(last_action, self._range_half, out=target)
-    target += self._range_center
-    qpos = self._data_qpos[self._robot_qpos_index]
-    np.subtract(target, qpos, out=delta)
-    np.minimum(delta, self._max_step, out=delta)
-    np.maximum(delta, -self._max_step, out=delta)
-    np.add(qpos, delta, out=target)
-    self._data_ctrl[self._ctrl_index] = target
+    del physics, random_state
+    self._last_action[:] = self._validated_action(action)
+    self._action_map.apply(self._last_action)
 
   def after_step(self, physics, random_state) -> None:
     self._update(physics, random_state)
@@ -460,15 +426,28 @@ class RobelTask(composer.Task):
     """Sets the episode's initial state and goal (inside reset_context)."""
     raise NotImplementedError
 
-  def _compute(self, physics) -> tuple[float, ...]:
-    """Fills the features, `_score` and `_success`; returns the reward terms.
-
-    Sets `_failed` when the episode must end (discount 0).
-
-    Reads `_qpos`/`_qvel` (true state) and `_sensed_qpos`/`_sensed_qvel`
-    (what the agent observes). Called once per control step and at reset.
-    """
+  def _compute_features(self, physics) -> None:
+    """Fills the observation features, and keeps what the reward, score and
+    success need, from `_qpos`/`_qvel` (true state) and
+    `_sensed_qpos`/`_sensed_qvel` (what the agent observes). Called once per
+    control step and at reset, before the methods below."""
     raise NotImplementedError
+
+  def _compute_reward_terms(self) -> dict[str, float]:
+    """The reward's terms, named as in `REWARD_TERMS` and in that order."""
+    raise NotImplementedError
+
+  def _compute_score(self) -> float:
+    """ROBEL's points for this step."""
+    raise NotImplementedError
+
+  def _compute_success(self) -> bool:
+    """ROBEL's success evaluator for the episode so far."""
+    raise NotImplementedError
+
+  def _compute_failure(self) -> bool:
+    """Whether the episode has failed and must end (e.g. a fall)."""
+    return False
 
   # --- Helpers -------------------------------------------------------------
 
@@ -480,8 +459,12 @@ class RobelTask(composer.Task):
       noise *= self._noise_halfwidths
       np.add(self._qpos, noise[0], out=self._sensed_qpos)
       np.add(self._qvel, noise[1], out=self._sensed_qvel)
-    self._reward_terms = terms = self._compute(physics)
-    self._reward = sum(terms)
+    self._compute_features(physics)
+    self._reward_terms = terms = self._compute_reward_terms()
+    self._reward = sum(terms.values())
+    self._score[...] = self._compute_score()
+    self._success[...] = self._compute_success()
+    self._failed = self._compute_failure()
     self._update_safety()
 
   def _episode_mean(self, error: float) -> float:
@@ -501,7 +484,7 @@ class RobelTask(composer.Task):
     self._safety[0] = near_limits
     speed = np.abs(self._robot_qvel, out=self._scratch)
     self._safety[1] = count(np.greater(speed, self._max_safe_speed, out=flags))
-    if self._current_measured:
+    if self._current is not None:
       over = np.abs(self._current) > self._max_safe_current
       self._safety[2] = count(over)
 

@@ -3,26 +3,43 @@
 ROBEL's task: docs/robel_reference.md section 2.1.
 """
 
+import dataclasses
 import math
 
 from dm_control.composer import variation
 from dm_control.composer.variation import distributions
 import numpy as np
 
-from robel_dm import constants, randomization, registry
+from robel_dm import constants, geometry, randomization, registry
 from robel_dm.arenas import station
 from robel_dm.entities import dclaw
 from robel_dm.tasks import base
 
 _EPISODE_STEPS = 80  # 4 s at 20 Hz.
 
-# Success: mean |joint error| below this, averaged over the episode, rad.
-_SUCCESS_THRESHOLD = np.deg2rad(10.0)
-# Score: points fall linearly to 0 at this mean |joint error|, rad.
-_POINTS_ERROR_SCALE = np.pi / 4
-# joint_vel_cost penalizes joints at least this fast, rad/s, with this weight.
-_FAST_JOINT_SPEED = np.pi
-_JOINT_VEL_COST_WEIGHT = 0.1
+
+@dataclasses.dataclass(frozen=True)
+class PoseReward:
+  """ROBEL's Pose reward, score and success constants.
+
+  Attributes:
+    joint_vel_weight: weight of `joint_vel_cost`.
+    fast_joint_speed: `joint_vel_cost` counts joints at least this fast,
+      rad/s.
+    points_error_scale: the points fall linearly to 0 at this mean |joint
+      error|, rad.
+    success_threshold: success is a mean |joint error| below this,
+      averaged over the episode, rad.
+  """
+
+  joint_vel_weight: float = 0.1
+  fast_joint_speed: float = np.pi
+  points_error_scale: float = np.pi / 4
+  success_threshold: float = np.deg2rad(10.0)
+
+
+REWARD = PoseReward()
+
 # A moving goal oscillates each joint at its own angular frequency, drawn
 # from this range, rad/s, and cuts each joint's amplitude so that no joint's
 # goal moves faster than _MAX_GOAL_SPEED, rad/s.
@@ -62,10 +79,7 @@ class PoseTask(base.RobelTask):
     initial_pose=FIXED_INITIAL_POSE,
     goal_pose=FIXED_GOAL_POSE,
     goal_frequency=None,
-    dynamics: randomization.DynamicsRanges | None = None,
-    observation_noise: float = 0.0,
-    observation_keys: tuple[str, ...] | None = None,
-    action_bounds: str = 'raise',
+    **options,
   ):
     """Builds the claw station and the task.
 
@@ -78,10 +92,8 @@ class PoseTask(base.RobelTask):
         joint's goal oscillates between them at its own frequency, as in
         ROBEL's PoseRandom, its amplitude cut so that it moves no faster
         than `_MAX_GOAL_SPEED`.
-      dynamics: per-episode dynamics ranges, or None.
-      observation_noise: ROBEL's observation-noise fraction.
-      observation_keys: the agent's observation; ROBEL's default if None.
-      action_bounds: 'raise' or 'clip' for actions outside [-1, 1].
+      **options: `RobelTask` options (`dynamics`, `observation_noise`,
+        `observation_keys`, `action_bounds`).
     """
     arena = station.ClawStation(
       mount_height=station.MOUNT_HEIGHT_POSE, show_goal=False
@@ -98,7 +110,9 @@ class PoseTask(base.RobelTask):
     self._phase = np.zeros(9)
     self._goal = np.zeros(9)
     self._error = np.zeros(9)
+    self._true_error = self._error  # The goal minus the true joint angles.
     self._abs_error = np.zeros(9)
+    self._mean_error = 0.0
     self._speed_squared = np.zeros(9)
     self._fast = np.zeros(9, dtype=bool)
     self._joint_weights = np.full(9, 1 / 9)  # Means as dot products (faster).
@@ -107,13 +121,10 @@ class PoseTask(base.RobelTask):
       robot=claw,
       control_timestep=constants.CONTROL_TIMESTEP_FAST,
       episode_steps=_EPISODE_STEPS,
-      dynamics=dynamics,
       randomizer_targets=randomization.Targets(
         joints=claw.joints, actuators=claw.actuators
       ),
-      observation_noise=observation_noise,
-      observation_keys=observation_keys,
-      action_bounds=action_bounds,
+      **options,
     )
     self._qpos_feature = self._features['qpos']
     self._qvel_feature = self._features['qvel']
@@ -173,7 +184,8 @@ class PoseTask(base.RobelTask):
     physics.bind(self.robot.joints).qpos = initial
     physics.bind(self.robot.actuators).ctrl = initial
 
-  def _compute(self, physics) -> tuple[float, ...]:
+  def _compute_features(self, physics) -> None:
+    del physics
     goal = self._goal
     if self._goal_moves:
       phase = np.multiply(self._frequency, self._mjdata.time, out=self._phase)
@@ -183,21 +195,29 @@ class PoseTask(base.RobelTask):
     self._qpos_feature[:] = self._sensed_qpos
     self._qvel_feature[:] = self._sensed_qvel
     np.subtract(goal, self._sensed_qpos, out=self._qpos_error_feature)
-
-    error = self._qpos_error_feature
     if self.observation_noise:  # Rewards use the true error.
-      error = np.subtract(goal, self._qpos, out=self._error)
+      self._true_error = np.subtract(goal, self._qpos, out=self._error)
+    else:
+      self._true_error = self._qpos_error_feature
+    abs_error = np.abs(self._true_error, out=self._abs_error)
+    self._mean_error = float(np.dot(abs_error, self._joint_weights))
+
+  def _compute_reward_terms(self) -> dict[str, float]:
     speed_squared = np.square(self._qvel, out=self._speed_squared)
-    fast = np.greater_equal(speed_squared, _FAST_JOINT_SPEED**2, out=self._fast)
-    pose_error_cost = -base.norm(error)
-    joint_vel_cost = -_JOINT_VEL_COST_WEIGHT * math.sqrt(
-      np.dot(speed_squared, fast)
+    fast = np.greater_equal(
+      speed_squared, REWARD.fast_joint_speed**2, out=self._fast
     )
-    abs_error = np.abs(error, out=self._abs_error)
-    mean_error = float(np.dot(abs_error, self._joint_weights))
-    self._score[...] = 1.0 - min(mean_error / _POINTS_ERROR_SCALE, 1.0)
-    self._success[...] = self._episode_mean(mean_error) < _SUCCESS_THRESHOLD
-    return (pose_error_cost, joint_vel_cost)
+    return {
+      'pose_error_cost': -geometry.norm(self._true_error),
+      'joint_vel_cost': -REWARD.joint_vel_weight
+      * math.sqrt(np.dot(speed_squared, fast)),
+    }
+
+  def _compute_score(self) -> float:
+    return 1.0 - min(self._mean_error / REWARD.points_error_scale, 1.0)
+
+  def _compute_success(self) -> bool:
+    return self._episode_mean(self._mean_error) < REWARD.success_threshold
 
 
 @registry.DCLAW.add(registry.FIXED)

@@ -3,13 +3,14 @@
 ROBEL's task: docs/robel_reference.md section 2.2.
 """
 
+import dataclasses
 import math
 
 from dm_control.composer import variation
 from dm_control.composer.variation import distributions
 import numpy as np
 
-from robel_dm import constants, randomization, registry
+from robel_dm import constants, geometry, randomization, registry
 from robel_dm.arenas import station
 from robel_dm.entities import dclaw
 from robel_dm.entities import valve as valve_lib
@@ -18,11 +19,28 @@ from robel_dm.tasks import base
 _EPISODE_STEPS = 40  # 4 s at 10 Hz.
 _SUCCESS_THRESHOLD = 0.1  # |angle error| at the last step, rad.
 
-# Reward weights and thresholds (rad, rad/s).
-_TARGET_DIST_WEIGHT = 5.0
-_FAST_JOINT_SPEED = 0.5
-_BONUS_SMALL, _BONUS_SMALL_DISTANCE = 10.0, 0.25
-_BONUS_BIG, _BONUS_BIG_DISTANCE = 50.0, 0.10
+
+@dataclasses.dataclass(frozen=True)
+class TurnReward:
+  """ROBEL's Turn/Screw reward constants (d = |angle error|, rad).
+
+  Attributes:
+    target_dist_weight: `target_dist_cost` is -weight * d.
+    fast_joint_speed: `joint_vel_cost` counts claw joints at least this
+      fast, rad/s.
+    bonus_small, bonus_small_distance: paid when d is below the distance.
+    bonus_big, bonus_big_distance: likewise.
+  """
+
+  target_dist_weight: float = 5.0
+  fast_joint_speed: float = 0.5
+  bonus_small: float = 10.0
+  bonus_small_distance: float = 0.25
+  bonus_big: float = 50.0
+  bonus_big_distance: float = 0.10
+
+
+REWARD = TurnReward()
 
 # The valve's angle range for observation noise (it has no velocity range, so
 # ROBEL adds no velocity noise), rad.
@@ -70,11 +88,7 @@ class TurnTask(base.RobelTask):
     success_threshold: float = _SUCCESS_THRESHOLD,
     success_on: str = SUCCESS_AT_FINAL_STEP,
     dynamics: randomization.DynamicsRanges | None = None,
-    observation_noise: float = 0.0,
-    observation_keys: tuple[str, ...] | None = None,
-    action_bounds: str = 'raise',
-    use_guide: bool = False,
-    interactive: bool = False,
+    **options,
   ):
     """Builds the claw station with a valve, and the task.
 
@@ -90,13 +104,8 @@ class TurnTask(base.RobelTask):
       success_on: 'final' judges the error at the current (finally the last)
         step, 'mean' the mean |error| of the episode so far.
       dynamics: per-episode dynamics ranges, or None.
-      observation_noise: ROBEL's observation-noise fraction.
-      observation_keys: the agent's observation; ROBEL's default if None.
-      action_bounds: 'raise' or 'clip' for actions outside [-1, 1].
-      use_guide: on a robot with ROBEL's guide motor (ID 60): the guide
-        points at the goal.
-      interactive: on a robot with a guide motor: the guide is released, a
-        person turns it, and its angle is the goal.
+      **options: `RobelTask` options (`observation_noise`,
+        `observation_keys`, `action_bounds`).
 
     Raises:
       ValueError: for an unknown valve or `success_on`.
@@ -115,9 +124,8 @@ class TurnTask(base.RobelTask):
     self._success_on_mean = success_on == SUCCESS_ON_MEAN_ERROR
     self._goal_start = 0.0
     self._episode_initial_angle = 0.0
-    self._use_guide = use_guide
-    self._interactive = interactive
     self._velocity = 0.0
+    self._distance = 0.0
     self._goal = 0.0
     super().__init__(
       arena=arena,
@@ -134,9 +142,7 @@ class TurnTask(base.RobelTask):
         mount=arena.mount,
         colored_geoms=(arena.mount_geom,) + self._valve.valve_geoms,
       ),
-      observation_noise=observation_noise,
-      observation_keys=observation_keys,
-      action_bounds=action_bounds,
+      **options,
     )
     self._claw_qpos_feature = self._features['claw_qpos']
     self._claw_qvel_feature = self._features['claw_qvel']
@@ -148,14 +154,13 @@ class TurnTask(base.RobelTask):
   def valve(self) -> valve_lib.Valve:
     return self._valve
 
-  def hardware_auxiliary_joints(self) -> dict:
-    """On hardware the valve angle comes from its motor (ID 50); the guide
-    motor (ID 60), with `use_guide` or `interactive`, shows or sets the goal
-    (its angle wrapped to [-pi, pi))."""
-    motors = {'valve': self._valve.hinge}
-    if self._use_guide or self._interactive:
-      motors['guide'] = None  # It measures no model joint.
-    return motors
+  def auxiliary_joints(self) -> dict:
+    """The valve (on a robot, its angle comes from motor 50)."""
+    return {'valve': self._valve.hinge}
+
+  @property
+  def goal_is_an_angle(self) -> bool:
+    return True
 
   @property
   def initial_angle(self) -> float:
@@ -171,13 +176,6 @@ class TurnTask(base.RobelTask):
     super().after_compile(physics, random_state)
     goal = base.mocap_index(physics, self.arena.goal_body)
     self._goal_quat = physics.data.mocap_quat[goal]  # A view.
-    if (self._use_guide or self._interactive) and not hasattr(
-      physics, 'auxiliary_angles'
-    ):
-      raise ValueError(
-        'use_guide and interactive need a robot with a guide motor: load the '
-        'task with a device_path'
-      )
 
   def _initialize_state(self, physics, random_state) -> None:
     initial = float(
@@ -187,7 +185,7 @@ class TurnTask(base.RobelTask):
       self._goal_start = initial
     else:
       goal = variation.evaluate(self._goal_angle, random_state=random_state)
-      self._goal_start = float(base.wrap_angle(goal))
+      self._goal_start = float(geometry.wrap_angle(goal))
     self._velocity = float(
       variation.evaluate(self._goal_velocity, random_state=random_state)
     )
@@ -197,25 +195,23 @@ class TurnTask(base.RobelTask):
     self._episode_initial_angle = initial
     self._goal = self._goal_start
     self._show_goal()
-    if self._use_guide and not self._interactive:
-      physics.auxiliary_goals['guide'] = base.wrap_angle(self._goal)
 
   def _show_goal(self) -> None:
     half_yaw = self._goal / 2
     self._goal_quat[:] = (math.cos(half_yaw), 0.0, 0.0, math.sin(half_yaw))
+    self._robot_io.show_goal(geometry.wrap_angle(self._goal))
 
-  def _compute(self, physics) -> tuple[float, ...]:
-    if self._interactive:
+  def _compute_features(self, physics) -> None:
+    del physics
+    person_goal = self._robot_io.goal_from_person()
+    if person_goal is not None:
       # A person turns the guide; its angle is the goal.
-      self._goal = physics.auxiliary_angles.get('guide', self._goal)
+      self._goal = person_goal
       self._show_goal()
     elif self._velocity:
       # The goal moves with time; time is a whole number of control steps.
       self._goal = self._goal_start + self._velocity * self._mjdata.time
       self._show_goal()
-      if self._use_guide:
-        physics.auxiliary_goals['guide'] = base.wrap_angle(self._goal)
-    goal = self._goal
     sensed_qpos, sensed_qvel = self._sensed_qpos, self._sensed_qvel
     sensed_angle = float(sensed_qpos[-1])
     self._claw_qpos_feature[:] = sensed_qpos[:-1]
@@ -225,25 +221,37 @@ class TurnTask(base.RobelTask):
       math.sin(sensed_angle),
       sensed_qvel[-1],
     )
-    self._target_error_feature[0] = base.wrap_angle(goal - sensed_angle)
-
-    distance = abs(base.wrap_angle(goal - float(self._qpos[-1])))
-    claw_qvel = self._qvel[:-1]
-    pose_diff = np.subtract(self._qpos[:-1], dclaw.RESET_POSE, out=self._diff)
-    fast = np.abs(claw_qvel) >= _FAST_JOINT_SPEED
-    small_bonus = _BONUS_SMALL if distance < _BONUS_SMALL_DISTANCE else 0.0
-    big_bonus = _BONUS_BIG if distance < _BONUS_BIG_DISTANCE else 0.0
-    self._score[...] = 1.0 - distance / math.pi
-    mean_distance = self._episode_mean(distance)
-    judged = mean_distance if self._success_on_mean else distance
-    self._success[...] = judged < self._success_threshold
-    return (
-      -_TARGET_DIST_WEIGHT * distance,
-      -base.norm(pose_diff),
-      -base.norm(claw_qvel[fast]),
-      small_bonus,
-      big_bonus,
+    self._target_error_feature[0] = geometry.wrap_angle(
+      self._goal - sensed_angle
     )
+    self._distance = abs(
+      geometry.wrap_angle(self._goal - float(self._qpos[-1]))
+    )
+
+  def _compute_reward_terms(self) -> dict[str, float]:
+    distance = self._distance
+    pose_diff = np.subtract(self._qpos[:-1], dclaw.RESET_POSE, out=self._diff)
+    claw_qvel = self._qvel[:-1]
+    fast = np.abs(claw_qvel) >= REWARD.fast_joint_speed
+    return {
+      'target_dist_cost': -REWARD.target_dist_weight * distance,
+      'pose_diff_cost': -geometry.norm(pose_diff),
+      'joint_vel_cost': -geometry.norm(claw_qvel[fast]),
+      'bonus_small': (
+        REWARD.bonus_small if distance < REWARD.bonus_small_distance else 0.0
+      ),
+      'bonus_big': (
+        REWARD.bonus_big if distance < REWARD.bonus_big_distance else 0.0
+      ),
+    }
+
+  def _compute_score(self) -> float:
+    return 1.0 - self._distance / math.pi
+
+  def _compute_success(self) -> bool:
+    mean_distance = self._episode_mean(self._distance)
+    judged = mean_distance if self._success_on_mean else self._distance
+    return judged < self._success_threshold
 
 
 @registry.DCLAW.add(registry.FIXED)

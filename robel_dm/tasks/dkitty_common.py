@@ -13,12 +13,11 @@ observations are kept with their meanings and units:
 """
 
 import dataclasses
-import math
 
 from dm_control import mjcf
 import numpy as np
 
-from robel_dm import constants, randomization
+from robel_dm import constants, geometry, randomization
 from robel_dm.arenas import floor
 from robel_dm.entities import dkitty
 
@@ -42,10 +41,6 @@ DEFAULT_OBSERVATION_KEYS = (
   'root_pos', 'root_euler', 'kitty_qpos', 'root_vel', 'root_angular_vel',
   'kitty_qvel', 'last_action', 'upright',
 )  # fmt: skip
-
-# Below this |cos(pitch)| the Euler rates are undefined (gimbal lock); the
-# rates are computed with the cosine clamped to it.
-_MIN_COS_PITCH = 1e-6
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,39 +67,6 @@ class Upright:
 
   def fallen(self, upright: float) -> bool:
     return upright < self.threshold
-
-
-def euler_xyz(rotation) -> tuple[float, float, float]:
-  """Rotating-frame x-y-z Euler angles (a, b, c) of R = Rx(a) Ry(b) Rz(c).
-
-  Args:
-    rotation: a 3x3 rotation matrix (nested sequences or an array).
-  """
-  (r00, r01, r02), (_, _, r12), (_, _, r22) = rotation
-  pitch = math.atan2(r02, math.hypot(r00, r01))
-  return math.atan2(-r12, r22), pitch, math.atan2(-r01, r00)
-
-
-def euler_xyz_rates(euler, angular_velocity_world) -> tuple[float, ...]:
-  """Rates of rotating x-y-z Euler angles for a world angular velocity.
-
-  With R = Rx(a) Ry(b) Rz(c): w = (1,0,0) da + Rx(a) (0,1,0) db
-  + Rx(a) Ry(b) (0,0,1) dc, solved for (da, db, dc).
-  """
-  roll, pitch, _ = euler
-  wx, wy, wz = angular_velocity_world
-  sin_roll, cos_roll = math.sin(roll), math.cos(roll)
-  cos_pitch = math.cos(pitch)
-  if abs(cos_pitch) < _MIN_COS_PITCH:
-    cos_pitch = math.copysign(_MIN_COS_PITCH, cos_pitch)
-  yaw_rate = (cos_roll * wz - sin_roll * wy) / cos_pitch
-  pitch_rate = cos_roll * wy + sin_roll * wz
-  roll_rate = wx - math.sin(pitch) * yaw_rate
-  return roll_rate, pitch_rate, yaw_rate
-
-
-def yaw_quaternion(yaw: float) -> np.ndarray:
-  return np.array([math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)])
 
 
 class Scene:
@@ -140,7 +102,7 @@ class Torso:
   def place(self, position, yaw: float) -> None:
     """Puts the torso at `position` (world, m), level, turned by `yaw`."""
     self._qpos[:3] = position
-    self._qpos[3:] = yaw_quaternion(yaw)
+    self._qpos[3:] = geometry.yaw_quaternion(yaw)
     self._qvel[:] = 0.0
 
   def update(self, out: np.ndarray) -> None:
@@ -153,7 +115,7 @@ class Torso:
     self.position[:] = self._qpos[:3]
     self.rotation[:] = self._xmat
     rotation = self.rotation.tolist()
-    euler = euler_xyz(rotation)
+    euler = geometry.euler_xyz(rotation)
     # The free joint's angular velocity is in the torso frame.
     angular_velocity = np.dot(self.rotation, self._qvel[3:])
     position = self.position - dkitty.ROBEL_FRAME_ORIGIN
@@ -162,7 +124,7 @@ class Torso:
       *position,
       *euler,
       *self._qvel[:3],
-      *euler_xyz_rates(euler, angular_velocity.tolist()),
+      *geometry.euler_xyz_rates(euler, angular_velocity.tolist()),
     )
 
   @property
@@ -173,12 +135,6 @@ class Torso:
   def facing(self) -> np.ndarray:
     """The torso's forward (y) axis projected on the floor (not unit)."""
     return self.rotation[:2, 1]
-
-
-def cosine(a: np.ndarray, b: np.ndarray) -> float:
-  """Cosine of the angle between two vectors (0 if either is zero)."""
-  denominator = math.sqrt(float(np.dot(a, a)) * float(np.dot(b, b)))
-  return float(np.dot(a, b)) / denominator if denominator > 0 else 0.0
 
 
 class KittyParts:
@@ -201,17 +157,25 @@ class KittyParts:
   def robot(self) -> dkitty.DKitty:
     return self.scene.robot
 
-  def robel_task_arguments(self) -> dict:
-    """Arguments of `RobelTask.__init__` that are the same for every task."""
+  def robel_task_arguments(self, episode_steps: int, **options) -> dict:
+    """Arguments of `RobelTask.__init__` for a D'Kitty task.
+
+    Args:
+      episode_steps: the task's episode length, control steps.
+      **options: the task's `RobelTask` options (`dynamics`,
+        `observation_noise`, `observation_keys`, `action_bounds`).
+    """
     robot = self.robot
     return {
       'arena': self.arena,
       'robot': robot,
       'control_timestep': constants.CONTROL_TIMESTEP,
+      'episode_steps': episode_steps,
       'randomizer_targets': randomization.Targets(
         joints=robot.joints, actuators=robot.actuators
       ),
       'root_joint': self.scene.root_joint,
+      **options,
     }
 
   def bind_features(self, task) -> None:
@@ -244,14 +208,17 @@ class KittyParts:
     # continues from them.
     physics.forward()
 
-  def update(self, sensed_qpos, sensed_qvel) -> tuple[float, float, bool]:
-    """Reads torso and legs into the features.
-
-    Returns:
-      The (upright, falling) reward terms and whether the robot has fallen.
-    """
+  def update(self, sensed_qpos, sensed_qvel) -> None:
+    """Reads torso and legs into the features."""
     self.torso.update(self._torso_features)
     self._joint_features[:12] = sensed_qpos
     self._joint_features[12:] = sensed_qvel
-    upright = self.torso.upright
-    return (*self.upright.terms(upright), self.upright.fallen(upright))
+
+  def upright_terms(self) -> dict[str, float]:
+    """The 'upright' and 'falling' reward terms of the last update."""
+    upright, falling = self.upright.terms(self.torso.upright)
+    return {'upright': upright, 'falling': falling}
+
+  def fallen(self) -> bool:
+    """Whether the robot had fallen at the last update."""
+    return self.upright.fallen(self.torso.upright)

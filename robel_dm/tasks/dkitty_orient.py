@@ -3,25 +3,46 @@
 ROBEL's task: docs/robel_reference.md section 2.6.
 """
 
+import dataclasses
 import math
 
 from dm_control.composer import variation
 from dm_control.composer.variation import distributions
 import numpy as np
 
-from robel_dm import constants, randomization, registry
+from robel_dm import constants, geometry, randomization, registry
 from robel_dm.entities import dkitty
 from robel_dm.tasks import base, dkitty_common
 
 _EPISODE_STEPS = 80  # 8 s at 10 Hz.
 _UPRIGHT = dkitty_common.Upright(threshold=0.9, reward=2.0, falling_reward=-500)
 
-# Reward weights and thresholds (rad, m, cosine).
-_ALIGNMENT_WEIGHT = 4.0
-_CENTER_DISTANCE_WEIGHT = 4.0
-_BONUS_SMALL, _BONUS_SMALL_ANGLE = 5.0, 0.26
-_BONUS_BIG, _BONUS_BIG_ANGLE = 10.0, 0.087
-_BONUS_UPRIGHT = 0.96
+
+@dataclasses.dataclass(frozen=True)
+class OrientReward:
+  """ROBEL's Orient reward constants (a = facing error, rad; u = upright;
+  c = horizontal distance from the start, m).
+
+  Attributes:
+    alignment_weight: `alignment_error_cost` is -weight * a.
+    center_distance_weight: `center_distance_cost` is -weight * c.
+    bonus_small, bonus_small_angle: paid once when a is below the angle or
+      u above `bonus_upright` (ROBEL's logical OR).
+    bonus_big, bonus_big_angle: paid when a is below the angle and u above
+      `bonus_upright`.
+    bonus_upright: the uprightness the bonuses ask for.
+  """
+
+  alignment_weight: float = 4.0
+  center_distance_weight: float = 4.0
+  bonus_small: float = 5.0
+  bonus_small_angle: float = 0.26
+  bonus_big: float = 10.0
+  bonus_big_angle: float = 0.087
+  bonus_upright: float = 0.96
+
+
+REWARD = OrientReward()
 
 # The target stands this far from the origin, m, at heading angle + pi/2.
 _TARGET_DISTANCE = 1.0
@@ -59,10 +80,7 @@ class OrientTask(base.RobelTask):
     initial_yaw=0.0,
     target_yaw=np.pi,
     terrain: bool = False,
-    dynamics: randomization.DynamicsRanges | None = None,
-    observation_noise: float = 0.0,
-    observation_keys: tuple[str, ...] | None = None,
-    action_bounds: str = 'raise',
+    **options,
   ):
     """Builds the floor, the robot, the target and the task.
 
@@ -72,10 +90,8 @@ class OrientTask(base.RobelTask):
       target_yaw: heading of the target from the origin (rad, or a
         Variation), in the same convention.
       terrain: turn on ROBEL's random heightfield instead of a plane.
-      dynamics: per-episode dynamics ranges, or None.
-      observation_noise: ROBEL's observation-noise fraction (leg joints).
-      observation_keys: the agent's observation; ROBEL's default if None.
-      action_bounds: 'raise' or 'clip' for actions outside [-1, 1].
+      **options: `RobelTask` options (`dynamics`, `observation_noise`,
+        `observation_keys`, `action_bounds`).
     """
     self._kitty = dkitty_common.KittyParts(terrain=terrain, upright=_UPRIGHT)
     self._target_body = self._kitty.arena.add_marker(
@@ -84,13 +100,9 @@ class OrientTask(base.RobelTask):
     self._initial_yaw = initial_yaw
     self._target_yaw = target_yaw
     self._target = np.zeros(2)
+    self._angle_error = 0.0
     super().__init__(
-      **self._kitty.robel_task_arguments(),
-      episode_steps=_EPISODE_STEPS,
-      dynamics=dynamics,
-      observation_noise=observation_noise,
-      observation_keys=observation_keys,
-      action_bounds=action_bounds,
+      **self._kitty.robel_task_arguments(_EPISODE_STEPS, **options)
     )
     self._kitty.bind_features(self)
     self._facing_features = self.feature_span('current_facing', 'angle_error')
@@ -121,41 +133,50 @@ class OrientTask(base.RobelTask):
     self._target_pos[2] = 0.1
     self._kitty.reset(physics, random_state, dkitty.STANDING_POSE, yaw=yaw)
 
-  def _compute(self, physics) -> tuple[float, ...]:
-    upright_term, falling_term, self._failed = self._kitty.update(
-      self._sensed_qpos, self._sensed_qvel
-    )
-    tracked = getattr(physics, 'tracked_target', None)
+  def _compute_features(self, physics) -> None:
+    del physics
+    self._kitty.update(self._sensed_qpos, self._sensed_qvel)
+    tracked = self._robot_io.tracked_target()
     if tracked is not None:  # On a robot with a tracked target.
-      self._target[:] = tracked()
+      self._target[:] = tracked
     torso = self._kitty.torso
     facing = torso.facing
     to_target = self._target - torso.position[:2]
-    distance = base.norm(to_target)
+    distance = geometry.norm(to_target)
     desired = to_target / distance if distance > 0 else to_target
-    cosine = min(max(dkitty_common.cosine(facing, desired), -1.0), 1.0)
-    angle_error = math.acos(cosine)
-    self._facing_features[:] = (*facing, *desired, angle_error)
+    cosine = min(max(geometry.cosine(facing, desired), -1.0), 1.0)
+    self._angle_error = math.acos(cosine)
+    self._facing_features[:] = (*facing, *desired, self._angle_error)
 
-    upright = torso.upright
-    upright_bonus = upright > _BONUS_UPRIGHT
+  def _compute_reward_terms(self) -> dict[str, float]:
+    angle_error = self._angle_error
+    upright = self._kitty.torso.upright > REWARD.bonus_upright
     # Either condition pays the small bonus once (ROBEL's logical OR).
-    small = (
-      _BONUS_SMALL if angle_error < _BONUS_SMALL_ANGLE or upright_bonus else 0.0
-    )
-    big = (
-      _BONUS_BIG if angle_error < _BONUS_BIG_ANGLE and upright_bonus else 0.0
-    )
-    self._score[...] = 1.0 - angle_error / np.pi
-    self._success[...] = big > 0
+    small = angle_error < REWARD.bonus_small_angle or upright
+    return {
+      **self._kitty.upright_terms(),
+      'alignment_error_cost': -REWARD.alignment_weight * angle_error,
+      'center_distance_cost': -REWARD.center_distance_weight
+      * geometry.norm(self._kitty.torso.position[:2]),
+      'bonus_small': REWARD.bonus_small if small else 0.0,
+      'bonus_big': REWARD.bonus_big if self._facing_target() else 0.0,
+    }
+
+  def _facing_target(self) -> bool:
+    """Facing the target and upright: `bonus_big` and success."""
     return (
-      upright_term,
-      falling_term,
-      -_ALIGNMENT_WEIGHT * angle_error,
-      -_CENTER_DISTANCE_WEIGHT * base.norm(torso.position[:2]),
-      small,
-      big,
+      self._angle_error < REWARD.bonus_big_angle
+      and self._kitty.torso.upright > REWARD.bonus_upright
     )
+
+  def _compute_score(self) -> float:
+    return 1.0 - self._angle_error / np.pi
+
+  def _compute_success(self) -> bool:
+    return self._facing_target()
+
+  def _compute_failure(self) -> bool:
+    return self._kitty.fallen()
 
 
 @registry.DKITTY.add(registry.FIXED)

@@ -3,23 +3,45 @@
 ROBEL's task: docs/robel_reference.md section 2.5.
 """
 
+import dataclasses
+
 from dm_control.composer import variation
 import numpy as np
 
-from robel_dm import constants, randomization, registry
+from robel_dm import constants, geometry, randomization, registry
 from robel_dm.entities import dkitty
 from robel_dm.tasks import base, dkitty_common
 
 _EPISODE_STEPS = 80  # 8 s at 10 Hz.
 _UPRIGHT = dkitty_common.Upright(threshold=0.0, reward=2.0, falling_reward=-100)
 
-# Reward weights and thresholds (rad, m).
-_POSE_ERROR_WEIGHT = 4.0
-_CENTER_DISTANCE_WEIGHT = 2.0
-_BONUS_SMALL, _BONUS_SMALL_ERROR = 5.0, np.pi / 6
-_BONUS_BIG, _BONUS_BIG_ERROR, _BONUS_BIG_UPRIGHT = 10.0, np.pi / 12, 0.9
-# Score: points fall linearly to 0 at this mean |joint error|, rad.
-_POINTS_ERROR_SCALE = np.pi / 3
+
+@dataclasses.dataclass(frozen=True)
+class StandReward:
+  """ROBEL's Stand reward constants (e = mean |joint error|, rad; u =
+  upright; c = horizontal distance from the start, m).
+
+  Attributes:
+    pose_error_weight: `pose_error_cost` is -weight * e.
+    center_distance_weight: `center_distance_cost` is -weight * c.
+    bonus_small, bonus_small_error: u * bonus_small when e is below the
+      error.
+    bonus_big, bonus_big_error, bonus_big_upright: paid when e is below the
+      error and u above the uprightness.
+    points_error_scale: the points fall linearly to 0 at this e, rad.
+  """
+
+  pose_error_weight: float = 4.0
+  center_distance_weight: float = 2.0
+  bonus_small: float = 5.0
+  bonus_small_error: float = np.pi / 6
+  bonus_big: float = 10.0
+  bonus_big_error: float = np.pi / 12
+  bonus_big_upright: float = 0.9
+  points_error_scale: float = np.pi / 3
+
+
+REWARD = StandReward()
 
 # Speed of the reference controller's standing-up ramp, rad/s.
 _REFERENCE_SPEED = 0.8
@@ -51,10 +73,7 @@ class StandTask(base.RobelTask):
     initial_pose=dkitty.CROUCHED_POSE,
     terrain: bool = False,
     settle_substeps: int = SETTLE_SUBSTEPS,
-    dynamics: randomization.DynamicsRanges | None = None,
-    observation_noise: float = 0.0,
-    observation_keys: tuple[str, ...] | None = None,
-    action_bounds: str = 'raise',
+    **options,
   ):
     """Builds the floor, the robot and the task.
 
@@ -64,10 +83,8 @@ class StandTask(base.RobelTask):
       terrain: stand on ROBEL's random heightfield instead of a plane.
       settle_substeps: physics steps a reset runs, commanding the initial
         pose, before the episode starts (ROBEL: 140, i.e. 0.35 s).
-      dynamics: per-episode dynamics ranges, or None.
-      observation_noise: ROBEL's observation-noise fraction (leg joints).
-      observation_keys: the agent's observation; ROBEL's default if None.
-      action_bounds: 'raise' or 'clip' for actions outside [-1, 1].
+      **options: `RobelTask` options (`dynamics`, `observation_noise`,
+        `observation_keys`, `action_bounds`).
     """
     self._kitty = dkitty_common.KittyParts(terrain=terrain, upright=_UPRIGHT)
     if settle_substeps < 0:
@@ -77,13 +94,9 @@ class StandTask(base.RobelTask):
     self._goal_pose = dkitty.STANDING_POSE
     self._abs_error = np.zeros(12)
     self._reference_start = np.zeros(12)
+    self._mean_error = 0.0
     super().__init__(
-      **self._kitty.robel_task_arguments(),
-      episode_steps=_EPISODE_STEPS,
-      dynamics=dynamics,
-      observation_noise=observation_noise,
-      observation_keys=observation_keys,
-      action_bounds=action_bounds,
+      **self._kitty.robel_task_arguments(_EPISODE_STEPS, **options)
     )
     self._kitty.bind_features(self)
     self._pose_error_feature = self._features['pose_error']
@@ -114,7 +127,8 @@ class StandTask(base.RobelTask):
 
   def _initialize_state(self, physics, random_state) -> None:
     if self._initial_pose is None:
-      pose = random_state.uniform(self._range_low, self._range_high)
+      action_map = self._action_map
+      pose = random_state.uniform(action_map.low, action_map.high)
     else:
       pose = variation.evaluate(self._initial_pose, random_state=random_state)
     self._kitty.reset(physics, random_state, pose)
@@ -126,35 +140,49 @@ class StandTask(base.RobelTask):
     physics.forward()
     self._reference_start = physics.bind(self.robot.joints).qpos.copy()
 
-  def _compute(self, physics) -> tuple[float, ...]:
-    upright_term, falling_term, self._failed = self._kitty.update(
-      self._sensed_qpos, self._sensed_qvel
-    )
+  def _compute_features(self, physics) -> None:
+    del physics
+    self._kitty.update(self._sensed_qpos, self._sensed_qvel)
     np.subtract(
       self._goal_pose, self._sensed_qpos, out=self._pose_error_feature
     )
     error = np.abs(self._goal_pose - self._qpos, out=self._abs_error)
-    mean_error = float(np.dot(error, self._joint_weights))
-    upright = self._kitty.torso.upright
-    center_distance = base.norm(self._kitty.torso.position[:2])
-    small = _BONUS_SMALL * upright if mean_error < _BONUS_SMALL_ERROR else 0.0
-    big = (
-      _BONUS_BIG
-      if mean_error < _BONUS_BIG_ERROR and upright > _BONUS_BIG_UPRIGHT
-      else 0.0
-    )
-    # ROBEL wrote max(), which makes the points <= 0 always; min() is meant.
-    points = 1.0 - min(mean_error / _POINTS_ERROR_SCALE, 1.0)
-    self._score[...] = points * upright
-    self._success[...] = big > 0
+    self._mean_error = float(np.dot(error, self._joint_weights))
+
+  def _compute_reward_terms(self) -> dict[str, float]:
+    error = self._mean_error
+    torso = self._kitty.torso
+    upright = torso.upright
+    return {
+      **self._kitty.upright_terms(),
+      'pose_error_cost': -REWARD.pose_error_weight * error,
+      'center_distance_cost': -REWARD.center_distance_weight
+      * geometry.norm(torso.position[:2]),
+      'bonus_small': (
+        REWARD.bonus_small * upright
+        if error < REWARD.bonus_small_error
+        else 0.0
+      ),
+      'bonus_big': REWARD.bonus_big if self._standing() else 0.0,
+    }
+
+  def _standing(self) -> bool:
+    """Close to the standing pose and upright: `bonus_big` and success."""
     return (
-      upright_term,
-      falling_term,
-      -_POSE_ERROR_WEIGHT * mean_error,
-      -_CENTER_DISTANCE_WEIGHT * center_distance,
-      small,
-      big,
+      self._mean_error < REWARD.bonus_big_error
+      and self._kitty.torso.upright > REWARD.bonus_big_upright
     )
+
+  def _compute_score(self) -> float:
+    # ROBEL wrote max(), which makes the points <= 0 always; min() is meant.
+    points = 1.0 - min(self._mean_error / REWARD.points_error_scale, 1.0)
+    return points * self._kitty.torso.upright
+
+  def _compute_success(self) -> bool:
+    return self._standing()
+
+  def _compute_failure(self) -> bool:
+    return self._kitty.fallen()
 
 
 @registry.DKITTY.add(registry.FIXED)

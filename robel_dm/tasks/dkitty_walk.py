@@ -3,23 +3,46 @@
 ROBEL's task: docs/robel_reference.md section 2.7.
 """
 
+import dataclasses
 import math
 
 from dm_control.composer import variation
 from dm_control.composer.variation import distributions
 import numpy as np
 
-from robel_dm import constants, randomization, registry
+from robel_dm import constants, geometry, randomization, registry
 from robel_dm.entities import dkitty
 from robel_dm.tasks import base, dkitty_common
 
 _EPISODE_STEPS = 160  # 16 s at 10 Hz.
 _UPRIGHT = dkitty_common.Upright(threshold=0.9, reward=1.0, falling_reward=-500)
 
-# Reward weights and thresholds (m, cosine).
-_TARGET_DISTANCE_WEIGHT = 4.0
-_HEADING_WEIGHT, _HEADING_THRESHOLD = 2.0, 0.9
-_BONUS_SMALL, _BONUS_BIG, _BONUS_DISTANCE = 5.0, 10.0, 0.5
+
+@dataclasses.dataclass(frozen=True)
+class WalkReward:
+  """ROBEL's Walk reward constants (D = distance to the target, m; h =
+  heading cosine).
+
+  Attributes:
+    target_distance_weight: `target_dist_cost` is -weight * D.
+    heading_weight, heading_threshold: the `heading` term is
+      weight * (h - threshold) / (1 - threshold); facing the target means
+      h above the threshold.
+    bonus_small: paid once when near the target or facing it (ROBEL's
+      logical OR).
+    bonus_big: paid when near the target and facing it.
+    bonus_distance: near the target means D below this, m.
+  """
+
+  target_distance_weight: float = 4.0
+  heading_weight: float = 2.0
+  heading_threshold: float = 0.9
+  bonus_small: float = 5.0
+  bonus_big: float = 10.0
+  bonus_distance: float = 0.5
+
+
+REWARD = WalkReward()
 
 # WalkRandom: target distance, m, and heading offset from straight ahead, rad.
 _RANDOM_DISTANCE = distributions.Uniform(1.0, 2.0)
@@ -54,10 +77,7 @@ class WalkTask(base.RobelTask):
     target_distance=2.0,
     target_angle=0.0,
     terrain: bool = False,
-    dynamics: randomization.DynamicsRanges | None = None,
-    observation_noise: float = 0.0,
-    observation_keys: tuple[str, ...] | None = None,
-    action_bounds: str = 'raise',
+    **options,
   ):
     """Builds the floor, the robot, the target and the task.
 
@@ -67,10 +87,8 @@ class WalkTask(base.RobelTask):
       target_angle: direction of the target from straight ahead (+y), rad
         (or a Variation), counter-clockwise.
       terrain: walk on ROBEL's random heightfield instead of a plane.
-      dynamics: per-episode dynamics ranges, or None.
-      observation_noise: ROBEL's observation-noise fraction (leg joints).
-      observation_keys: the agent's observation; ROBEL's default if None.
-      action_bounds: 'raise' or 'clip' for actions outside [-1, 1].
+      **options: `RobelTask` options (`dynamics`, `observation_noise`,
+        `observation_keys`, `action_bounds`).
     """
     self._kitty = dkitty_common.KittyParts(terrain=terrain, upright=_UPRIGHT)
     arena = self._kitty.arena
@@ -84,13 +102,10 @@ class WalkTask(base.RobelTask):
     self._target_distance = target_distance
     self._target_angle = target_angle
     self._target = np.zeros(2)
+    self._distance = 0.0
+    self._heading = 0.0
     super().__init__(
-      **self._kitty.robel_task_arguments(),
-      episode_steps=_EPISODE_STEPS,
-      dynamics=dynamics,
-      observation_noise=observation_noise,
-      observation_keys=observation_keys,
-      action_bounds=action_bounds,
+      **self._kitty.robel_task_arguments(_EPISODE_STEPS, **options)
     )
     self._kitty.bind_features(self)
     self._target_features = self.feature_span('heading', 'target_error')
@@ -120,41 +135,51 @@ class WalkTask(base.RobelTask):
     self._heading_pos[:] = (*self._target, 0.25)
     self._kitty.reset(physics, random_state, dkitty.STANDING_POSE)
 
-  def _compute(self, physics) -> tuple[float, ...]:
-    upright_term, falling_term, self._failed = self._kitty.update(
-      self._sensed_qpos, self._sensed_qvel
-    )
-    tracked = getattr(physics, 'tracked_target', None)
+  def _compute_features(self, physics) -> None:
+    del physics
+    self._kitty.update(self._sensed_qpos, self._sensed_qvel)
+    io = self._robot_io
+    tracked = io.tracked_target()
     if tracked is not None:  # On a robot with a tracked target.
-      self._target[:] = tracked()
+      self._target[:] = tracked
     torso = self._kitty.torso
     target_error = self._target - torso.position[:2]
-    tracked_heading = getattr(physics, 'tracked_heading', None)
+    tracked_heading = io.tracked_heading()
     towards = (
       target_error
       if tracked_heading is None
-      else tracked_heading() - torso.position[:2]
+      else tracked_heading - torso.position[:2]
     )
-    heading = dkitty_common.cosine(torso.facing, towards)
-    self._target_features[:] = (heading, *self._target, *target_error)
+    self._heading = geometry.cosine(torso.facing, towards)
+    self._target_features[:] = (self._heading, *self._target, *target_error)
+    self._distance = geometry.norm(target_error)
 
-    distance = base.norm(target_error)
-    near, facing = distance < _BONUS_DISTANCE, heading > _HEADING_THRESHOLD
-    # Either condition pays the small bonus once (ROBEL's logical OR).
-    small = _BONUS_SMALL if near or facing else 0.0
-    big = _BONUS_BIG if near and facing else 0.0
-    self._score[...] = -distance
-    self._success[...] = big > 0
+  def _compute_reward_terms(self) -> dict[str, float]:
+    near = self._distance < REWARD.bonus_distance
+    facing = self._heading > REWARD.heading_threshold
+    threshold = REWARD.heading_threshold
+    return {
+      **self._kitty.upright_terms(),
+      'target_dist_cost': -REWARD.target_distance_weight * self._distance,
+      'heading': REWARD.heading_weight
+      * (self._heading - threshold)
+      / (1 - threshold),
+      # Either condition pays the small bonus once (ROBEL's logical OR).
+      'bonus_small': REWARD.bonus_small if near or facing else 0.0,
+      'bonus_big': REWARD.bonus_big if near and facing else 0.0,
+    }
+
+  def _compute_score(self) -> float:
+    return -self._distance
+
+  def _compute_success(self) -> bool:
     return (
-      upright_term,
-      falling_term,
-      -_TARGET_DISTANCE_WEIGHT * distance,
-      _HEADING_WEIGHT
-      * (heading - _HEADING_THRESHOLD)
-      / (1 - _HEADING_THRESHOLD),
-      small,
-      big,
+      self._distance < REWARD.bonus_distance
+      and self._heading > REWARD.heading_threshold
     )
+
+  def _compute_failure(self) -> bool:
+    return self._kitty.fallen()
 
 
 @registry.DKITTY.add(registry.FIXED)
