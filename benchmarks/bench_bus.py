@@ -44,7 +44,7 @@ def physical_bus_ms(motors: int) -> float:
 @contextlib.contextmanager
 def virtual_bus(robot: str):
   process = subprocess.Popen(
-    [sys.executable, '-m', 'robel_dm.hardware.virtual_bus',
+    [sys.executable, '-m', 'robel_dm.hardware.virtual',
      f'--robot={robot}', '--driver=ideal'],
     stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
   )  # fmt: skip

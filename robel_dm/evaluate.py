@@ -41,7 +41,7 @@ _DEVICE_PATH = flags.DEFINE_string(
   'device_path',
   None,
   'Run on a robot: its Dynamixel bus (e.g. /dev/ttyUSB0, or the path '
-  'printed by `python -m robel_dm.hardware.virtual_bus`), or "virtual" for '
+  'printed by `python -m robel_dm.hardware.virtual`), or "virtual" for '
   'an in-process simulated bus. Default: simulation.',
 )
 _ROBOT_CONFIG = flags.DEFINE_string(

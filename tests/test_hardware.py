@@ -14,7 +14,7 @@ import pytest
 from robel_dm import evaluate, suite
 from robel_dm.hardware import config as config_lib
 from robel_dm.hardware import control_table as table
-from robel_dm.hardware import dynamixel, virtual_bus
+from robel_dm.hardware import dynamixel, virtual
 from robel_dm.hardware import environment as hardware_env
 
 # A virtual-bus episode replays a simulated one within these tolerances on
@@ -232,10 +232,10 @@ def test_persistent_corruption_raises_instead_of_returning_stale_data(
 
 def test_missing_motor_at_connect_is_named(short_timeouts):
   config = config_lib.default('dclaw')
-  servos = virtual_bus.make_servos(
-    [i for i in virtual_bus.robot_motor_ids(config) if i != 22]
+  servos = virtual.make_servos(
+    [i for i in virtual.robot_motor_ids(config) if i != 22]
   )
-  with virtual_bus.PtyBusServer(virtual_bus.Bus(servos)) as server:
+  with virtual.PtyBusServer(virtual.Bus(servos)) as server:
     client = dynamixel.DynamixelClient(server.device_path, config.joint_ids)
     with pytest.raises(dynamixel.MissingMotorError, match=r'\[22\]'):
       client.connect()
@@ -254,10 +254,10 @@ def test_dkitty_on_a_real_bus_needs_a_tracker():
 
 def test_client_units_and_signs():
   config = config_lib.default('dclaw')
-  servos = virtual_bus.make_servos(config.joint_ids, model_number=1020)
-  bus = virtual_bus.Bus(servos)
+  servos = virtual.make_servos(config.joint_ids, model_number=1020)
+  bus = virtual.Bus(servos)
   with (
-    virtual_bus.PtyBusServer(bus) as server,
+    virtual.PtyBusServer(bus) as server,
     dynamixel.DynamixelClient(server.device_path, config.joint_ids) as c,
   ):
     bus.servo(10).set_present(-1024, -10, -57)

@@ -15,11 +15,11 @@ import pytest
 
 from robel_dm.hardware import config as config_lib
 from robel_dm.hardware import control_table as table
-from robel_dm.hardware import dynamixel, scan, virtual_bus
+from robel_dm.hardware import dynamixel, scan, virtual
 from robel_dm.hardware.protocol import Instruction
 
 DCLAW = config_lib.default('dclaw')
-DCLAW_IDS = virtual_bus.robot_motor_ids(DCLAW)  # 9 joints, valve, guide.
+DCLAW_IDS = virtual.robot_motor_ids(DCLAW)  # 9 joints, valve, guide.
 
 
 @pytest.fixture(autouse=True)
@@ -31,8 +31,8 @@ def _short_sdk_timeouts(monkeypatch):
 @contextlib.contextmanager
 def _serve(ids=DCLAW_IDS, extra=()):
   """Serves servos `ids` (ROBEL's setup) plus the `extra` servos."""
-  bus = virtual_bus.Bus(virtual_bus.make_servos(ids) + list(extra))
-  with virtual_bus.PtyBusServer(bus) as server:
+  bus = virtual.Bus(virtual.make_servos(ids) + list(extra))
+  with virtual.PtyBusServer(bus) as server:
     yield bus, server.device_path
   assert not server.errors
 
@@ -72,10 +72,10 @@ def test_healthy_dclaw_bus_has_no_problems():
   assert problems == []
   report = reports[0]
   assert report.model_name == 'XH430-V350' and report.model_number == 1040
-  assert report.firmware == virtual_bus.DEFAULT_FIRMWARE
+  assert report.firmware == virtual.DEFAULT_FIRMWARE
   assert report.position == 2048
   assert report.position_rad == pytest.approx(math.pi)
-  assert report.temperature == virtual_bus.DEFAULT_TEMPERATURE
+  assert report.temperature == virtual.DEFAULT_TEMPERATURE
   assert report.input_voltage == pytest.approx(24.0)
   assert report.operating_mode == table.POSITION_MODE
   assert report.baud_rate == 1_000_000
@@ -183,7 +183,7 @@ def test_status_return_level_is_flagged():
 
 
 def test_extra_unknown_motor_is_reported():
-  unknown = virtual_bus.VirtualServo(99, model_number=1200)
+  unknown = virtual.VirtualServo(99, model_number=1200)
   with _serve(extra=[unknown]) as (_, device):
     reports, problems = _scan(device, all_ids=True)
     code, output = _run(device, all_ids=True)
@@ -266,7 +266,7 @@ def test_apply_without_answers_writes_nothing():
 
 
 def test_apply_leaves_motors_that_are_not_expected_alone():
-  stranger = virtual_bus.VirtualServo(99)
+  stranger = virtual.VirtualServo(99)
   stranger.set(table.OPERATING_MODE, 1)  # E.g. a wheel, on purpose.
   with _serve(extra=[stranger]) as (_, device):
     code, output = _run(device, all_ids=True, apply=True, yes=True)

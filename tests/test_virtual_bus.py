@@ -20,7 +20,7 @@ import time
 
 import pytest
 
-from robel_dm.hardware import config, protocol, virtual_bus
+from robel_dm.hardware import config, protocol, virtual
 from robel_dm.hardware import control_table as table
 from robel_dm.hardware.protocol import Error, Instruction
 
@@ -182,7 +182,7 @@ def test_fast_status_layout():
 
 
 def test_servo_defaults():
-  servo = virtual_bus.VirtualServo(7)
+  servo = virtual.VirtualServo(7)
   assert servo.motor_id == 7 and servo.model_number == 1040
   assert servo.firmware == 46
   assert table.BAUD_RATES[servo.get(table.BAUD_RATE)] == 1_000_000
@@ -198,13 +198,13 @@ def test_servo_defaults():
   assert not servo.torque_enabled
   assert servo.goal_position == servo.present_position == 2048
   assert len(servo.table) == 662
-  w210 = virtual_bus.VirtualServo(1, model_number=1030)
+  w210 = virtual.VirtualServo(1, model_number=1030)
   assert w210.get(table.CURRENT_LIMIT) == 1193
   assert w210.get(table.PRESENT_INPUT_VOLTAGE) == 120
 
 
 def test_servo_write_rules():
-  servo = virtual_bus.VirtualServo(1)
+  servo = virtual.VirtualServo(1)
   goal = table.GOAL_POSITION.address
 
   def write(item, value):
@@ -235,7 +235,7 @@ def test_servo_write_rules():
 
 
 def test_indirect_addressing_maps_hardware_error_into_a_block():
-  servo = virtual_bus.VirtualServo(1)
+  servo = virtual.VirtualServo(1)
   targets = [table.HARDWARE_ERROR_STATUS.address] + list(range(132, 136))
   for n, target in enumerate(targets, start=1):
     item = table.indirect_address(n)
@@ -254,7 +254,7 @@ def test_indirect_addressing_maps_hardware_error_into_a_block():
 
 
 def test_reg_write_and_action():
-  servo = virtual_bus.VirtualServo(1)
+  servo = virtual.VirtualServo(1)
   assert servo.action() == Error.INSTRUCTION
   assert servo.reg_write(65, b'\x01') == Error.NONE
   assert servo.get(table.REGISTERED_INSTRUCTION) == 1
@@ -265,7 +265,7 @@ def test_reg_write_and_action():
 
 
 def test_factory_reset_restores_factory_settings():
-  servo = virtual_bus.VirtualServo(12)
+  servo = virtual.VirtualServo(12)
   assert servo.factory_reset(protocol.RESET_ALL_BUT_ID) == Error.NONE
   assert servo.motor_id == 12
   assert servo.baud_rate == 57_600
@@ -276,7 +276,7 @@ def test_factory_reset_restores_factory_settings():
 
 
 def test_bus_clear_and_factory_reset_packets():
-  bus = virtual_bus.Bus(virtual_bus.make_servos([5]))
+  bus = virtual.Bus(virtual.make_servos([5]))
   servo = bus.servo(5)
 
   def send(instruction, params=b'', packet_id=5):
@@ -298,7 +298,7 @@ def test_bus_clear_and_factory_reset_packets():
 
 
 def test_set_present_rejects_floats_and_overflow():
-  servo = virtual_bus.VirtualServo(1)
+  servo = virtual.VirtualServo(1)
   with pytest.raises(TypeError):
     servo.set_present(1.5)
   with pytest.raises(ValueError):
@@ -306,14 +306,14 @@ def test_set_present_rejects_floats_and_overflow():
 
 
 def test_build_bus_for_the_shipped_robots():
-  dclaw = virtual_bus.build_bus(config.default('dclaw'))
+  dclaw = virtual.build_bus(config.default('dclaw'))
   assert sorted(dclaw.by_id()) == [10, 11, 12, 20, 21, 22, 30, 31, 32, 50, 60]
-  dkitty = virtual_bus.build_bus(config.default('dkitty'))
+  dkitty = virtual.build_bus(config.default('dkitty'))
   assert len(dkitty.servos) == 12
   with pytest.raises(ValueError):
-    virtual_bus.build_bus(config.default('dclaw'), driver='nonsense')
+    virtual.build_bus(config.default('dclaw'), driver='nonsense')
   with pytest.raises(ValueError):
-    virtual_bus.Bus(virtual_bus.make_servos([1, 1]))
+    virtual.Bus(virtual.make_servos([1, 1]))
 
 
 # --- Through the SDK ---------------------------------------------------------
@@ -334,12 +334,12 @@ class CountingPortHandler(sdk.PortHandler):
 
 @dataclasses.dataclass
 class Chain:
-  bus: virtual_bus.Bus
-  server: virtual_bus.PtyBusServer
+  bus: virtual.Bus
+  server: virtual.PtyBusServer
   port: CountingPortHandler
   packets: 'sdk.Protocol2PacketHandler'
 
-  def servo(self, motor_id: int) -> virtual_bus.VirtualServo:
+  def servo(self, motor_id: int) -> virtual.VirtualServo:
     return self.bus.servo(motor_id)
 
   def settle(self, timeout_s: float = 10.0) -> None:
@@ -355,8 +355,8 @@ class Chain:
 
 @contextlib.contextmanager
 def _serve(ids, driver=None, faults=None):
-  bus = virtual_bus.Bus(virtual_bus.make_servos(ids), driver, faults)
-  with virtual_bus.PtyBusServer(bus) as server:
+  bus = virtual.Bus(virtual.make_servos(ids), driver, faults)
+  with virtual.PtyBusServer(bus) as server:
     port = CountingPortHandler(server.device_path)
     assert port.openPort()
     assert port.setBaudRate(BAUD_RATE)
@@ -562,7 +562,7 @@ def test_baud_rate_change(chain):
 def test_driver_hooks():
   calls = []
 
-  class Recorder(virtual_bus.IdealDriver):
+  class Recorder(virtual.IdealDriver):
     def on_write(self, servos, ids):
       calls.append(('write', list(ids)))
       super().on_write(servos, ids)
@@ -606,7 +606,7 @@ def test_missing_motor(chain):
 
 
 def test_missing_motor_without_chain_break(open_chain):
-  faults = virtual_bus.Faults(absent={2}, chain_break=False)
+  faults = virtual.Faults(absent={2}, chain_break=False)
   chain = open_chain(faults=faults)
   with short_deadline(chain):
     reader, result = _sync_read(chain, [1, 2, 3])
@@ -723,8 +723,8 @@ def test_false_header_is_abandoned(chain):
 
 
 def test_server_is_idle_without_traffic_and_stops_cleanly():
-  bus = virtual_bus.Bus(virtual_bus.make_servos([1]))
-  server = virtual_bus.PtyBusServer(bus).start()
+  bus = virtual.Bus(virtual.make_servos([1]))
+  server = virtual.PtyBusServer(bus).start()
   path = server.device_path
   for _ in range(3):  # Reopen (EIO territory without the server's slave fd).
     port = sdk.PortHandler(path)
@@ -745,7 +745,7 @@ def test_server_is_idle_without_traffic_and_stops_cleanly():
 
 def test_command_line_serves_a_robot():
   process = subprocess.Popen(
-    [sys.executable, '-m', 'robel_dm.hardware.virtual_bus', '--robot=dclaw'],
+    [sys.executable, '-m', 'robel_dm.hardware.virtual', '--robot=dclaw'],
     stdout=subprocess.PIPE,
     stderr=subprocess.PIPE,
     text=True,

@@ -24,6 +24,14 @@ import numpy as np
 
 from robel_dm.hardware import control_table as table
 
+# Re-exported: callers catch `dynamixel.DynamixelError` and its subclasses.
+from robel_dm.hardware.dynamixel_errors import (
+  DynamixelError,
+  MissingMotorError,
+  MotorFaultError,
+  describe_hardware_errors,
+)
+
 try:
   import dynamixel_sdk as sdk
 except ImportError:  # pragma: no cover - exercised without the extra
@@ -31,26 +39,6 @@ except ImportError:  # pragma: no cover - exercised without the extra
 
 _STATE_FORMAT = struct.Struct('<hii')  # current (2), velocity (4), position.
 _TORQUE_RETRY_INTERVAL_S = 0.05
-
-
-class DynamixelError(RuntimeError):
-  """A communication or motor failure; `motor_ids` names the motors."""
-
-  def __init__(self, message: str, motor_ids=()):
-    super().__init__(message)
-    self.motor_ids = tuple(motor_ids)
-
-
-class MissingMotorError(DynamixelError):
-  """Motors that do not answer."""
-
-
-class MotorFaultError(DynamixelError):
-  """Motors that report a hardware error (overload, overheating, ...)."""
-
-  def __init__(self, message: str, errors: dict[int, int]):
-    super().__init__(message, errors)
-    self.errors = dict(errors)
 
 
 def _require_sdk():
@@ -83,14 +71,6 @@ def _close_all_clients():
     clients = list(_OPEN_CLIENTS)
   for client in clients:
     client.disconnect()
-
-
-def describe_hardware_errors(errors: dict[int, int]) -> str:
-  return '; '.join(
-    f'motor {motor_id}: {", ".join(table.hardware_error_names(bits))}'
-    f' (0x{bits:02x})'
-    for motor_id, bits in sorted(errors.items())
-  )
 
 
 class DynamixelClient:

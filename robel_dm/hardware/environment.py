@@ -253,12 +253,13 @@ def make_environment(
   on_close = [] if tracker is None else [tracker.close]
   bus = simulation = None
   if virtual:
-    from robel_dm.hardware import sim_robot, virtual_bus  # noqa: PLC0415
+    from robel_dm.hardware import sim_robot  # noqa: PLC0415
+    from robel_dm.hardware import virtual as virtual_lib  # noqa: PLC0415
 
     simulation = sim_robot.SimulatedRobot(scene_factory(), robot_config)
-    servos = virtual_bus.make_servos(virtual_bus.robot_motor_ids(robot_config))
-    bus = virtual_bus.Bus(servos, driver=simulation)
-    server = virtual_bus.PtyBusServer(bus).start()
+    servos = virtual_lib.make_servos(virtual_lib.robot_motor_ids(robot_config))
+    bus = virtual_lib.Bus(servos, driver=simulation)
+    server = virtual_lib.PtyBusServer(bus).start()
     on_close += [server.stop, simulation.close]
     device_path = server.device_path
     if free_floating and torso_source is None:

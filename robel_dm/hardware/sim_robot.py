@@ -108,7 +108,7 @@ class SimulatedRobot:
   def close(self) -> None:
     self._env.close()
 
-  # --- virtual_bus.Driver ----------------------------------------------------
+  # --- virtual.Driver --------------------------------------------------------
 
   def on_write(self, servos, ids) -> None:
     with self._lock:

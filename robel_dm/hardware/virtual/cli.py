@@ -1,0 +1,147 @@
+"""The virtual bus's command line: a robot's motors on a pseudo-terminal.
+
+  python -m robel_dm.hardware.virtual --robot=dclaw
+
+prints the device path of a pseudo-terminal on which a virtual servo bus
+serves every motor of the robot's shipped configuration (or of `--config`),
+then serves it until SIGINT or SIGTERM. `--driver=sim` (the default) moves
+the motors with a MuJoCo simulation of the robot in real time;
+`--driver=ideal` puts every motor at its goal at once.
+
+`build_bus` assembles such a bus from a configuration and the name of a
+driver (`DRIVERS`).
+"""
+
+from collections.abc import Callable, Sequence
+import logging
+import math
+import signal
+import sys
+import threading
+
+from robel_dm.hardware import config
+from robel_dm.hardware.virtual.bus import (
+  Bus,
+  Driver,
+  IdealDriver,
+  robot_motor_ids,
+)
+from robel_dm.hardware.virtual.servo import DEFAULT_MODEL_NUMBER, make_servos
+from robel_dm.hardware.virtual.transport import PtyBusServer
+
+# --driver values: factories of a driver for a robot configuration.
+DriverFactory = Callable[[config.RobotConfig], Driver]
+# The scene a standalone simulated robot runs: one with every motor's joint
+# (the D'Claw's includes the valve that motor 50 reads).
+_SIMULATED_SCENES = {'dclaw': 'turn_fixed', 'dkitty': 'stand_fixed'}
+
+
+def _simulated_robot(robot_config: config.RobotConfig) -> Driver:
+  # Imported here: they need MuJoCo, and the command line builds the scene.
+  from robel_dm import suite  # noqa: PLC0415
+  from robel_dm.hardware import sim_robot  # noqa: PLC0415
+
+  scene = suite.load(
+    robot_config.robot,
+    _SIMULATED_SCENES[robot_config.robot],
+    seed=0,
+    time_limit=math.inf,
+  )
+  return sim_robot.SimulatedRobot(scene, robot_config, realtime=True)
+
+
+DRIVERS: dict[str, DriverFactory] = {
+  'ideal': lambda robot_config: IdealDriver(),
+  # A MuJoCo simulation of the robot, advancing with the wall clock.
+  'sim': _simulated_robot,
+}
+
+
+def build_bus(
+  robot_config: config.RobotConfig,
+  driver: str = 'ideal',
+  model_number: int = DEFAULT_MODEL_NUMBER,
+) -> Bus:
+  """A bus with one servo per motor of `robot_config`.
+
+  Args:
+    robot_config: the robot.
+    driver: a key of DRIVERS.
+    model_number: the servos' model.
+
+  Raises:
+    ValueError: for an unknown driver.
+  """
+  if driver not in DRIVERS:
+    raise ValueError(f'unknown driver {driver!r}; known: {sorted(DRIVERS)}')
+  servos = make_servos(robot_motor_ids(robot_config), model_number)
+  return Bus(servos, driver=DRIVERS[driver](robot_config))
+
+
+def _define_flags():
+  from absl import flags  # Command line only.
+
+  # The flags then belong to the module that calls `main` (the package's
+  # `__main__`), whose flags `--help` lists.
+  flags.disclaim_key_flags()
+  return {
+    'robot': flags.DEFINE_string(
+      'robot', 'dclaw', 'Robot whose shipped configuration to serve.'
+    ),
+    'config': flags.DEFINE_string(
+      'config', None, 'Robot configuration file (JSON); overrides --robot.'
+    ),
+    'driver': flags.DEFINE_enum(
+      'driver',
+      'sim',
+      sorted(DRIVERS),
+      'What moves the motors: sim (a MuJoCo simulation of the robot, in real '
+      'time) or ideal (every motor at its goal at once).',
+    ),
+    'model_number': flags.DEFINE_integer(
+      'model_number', DEFAULT_MODEL_NUMBER, 'Model number of every servo.'
+    ),
+  }
+
+
+def _serve_until_signalled(flag_values) -> int:
+  try:
+    if flag_values['config'].value:
+      robot_config = config.load(flag_values['config'].value)
+    else:
+      robot_config = config.default(flag_values['robot'].value)
+  except config.ConfigError as error:
+    print(f'error: {error}', file=sys.stderr)
+    return 2
+  bus = build_bus(
+    robot_config,
+    flag_values['driver'].value,
+    flag_values['model_number'].value,
+  )
+  stop = threading.Event()
+  for signal_number in (signal.SIGINT, signal.SIGTERM):
+    signal.signal(signal_number, lambda *_: stop.set())
+  with PtyBusServer(bus) as server:
+    print(server.device_path, flush=True)
+    logging.info(
+      'serving %s motors %s on %s',
+      robot_config.robot,
+      robot_motor_ids(robot_config),
+      server.device_path,
+    )
+    stop.wait()
+  return 0
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+  """Serves a robot's motors until SIGINT or SIGTERM."""
+  from absl import app  # Command line only.
+
+  flag_values = _define_flags()
+
+  def run(args: Sequence[str]) -> int:
+    if len(args) > 1:
+      raise app.UsageError(f'unexpected arguments: {args[1:]}')
+    return _serve_until_signalled(flag_values)
+
+  app.run(run, argv=argv)
