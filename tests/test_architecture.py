@@ -1,0 +1,122 @@
+"""Architecture rules, checked by tools rather than by hope.
+
+* The import layers of `pyproject.toml` ([tool.importlinter]) hold: scene
+  parts, tasks and the hardware layer never import the layers above them.
+* Only `robel_dm/environment.py` touches dm_control's private names.
+* No module of the package is longer than 600 lines.
+"""
+
+import pathlib
+import re
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+_ROOT = pathlib.Path(__file__).resolve().parent.parent
+_PACKAGE = _ROOT / 'robel_dm'
+_MAX_MODULE_LINES = 600
+
+# Private names of dm_control's composer.Environment and observation
+# Updater that robel_dm relies on (see robel_dm/environment.py); generic
+# ones such as `_task` or `_physics` are robel_dm's own names elsewhere.
+_DM_CONTROL_PRIVATE = (
+  '_step_counter',
+  '_enabled_list',
+  '_enabled_structure',
+  '_is_nested',
+  '_strip_singleton_buffer_dim',
+  '_physics_steps_per_control_step',
+  '_hooks',
+  '_physics_proxy',
+  '_mjcf_never_compiled',
+  '_recompile_mjcf_every_episode',
+  '_reset_next_step',
+  '_n_sub_steps',
+  '_raise_exception_on_physics_error',
+  '_observation_updater',
+  '_recompile_physics',
+  '_make_observation_updater',
+  '_legacy_step',
+  '_delayed_observation_padding',
+  '_strip_singleton_obs_buffer_dim',
+)
+_ADAPTER = _PACKAGE / 'environment.py'
+
+
+def _lint_imports(python_path: pathlib.Path | None = None):
+  executable = shutil.which(
+    'lint-imports', path=str(pathlib.Path(sys.executable).parent)
+  )
+  assert executable, 'lint-imports missing: install the dev extra'
+  env = None
+  if python_path is not None:
+    env = {'PYTHONPATH': str(python_path), 'PATH': '/usr/bin:/bin'}
+  return subprocess.run(
+    [executable, '--config', str(_ROOT / 'pyproject.toml'), '--no-cache'],
+    cwd=python_path or _ROOT,  # lint-imports looks in its directory first.
+    capture_output=True,
+    text=True,
+    env=env,
+    check=False,
+  )
+
+
+def test_import_layers_hold():
+  result = _lint_imports()
+  assert result.returncode == 0, result.stdout + result.stderr
+  assert '0 broken' in result.stdout
+
+
+def test_import_layers_catch_a_task_importing_the_hardware_layer(tmp_path):
+  # A copy of the package in which a task reaches up into the hardware
+  # layer: the contract must break.
+  shutil.copytree(
+    _PACKAGE, tmp_path / 'robel_dm', ignore=shutil.ignore_patterns('*.pyc')
+  )
+  base = tmp_path / 'robel_dm' / 'tasks' / 'base.py'
+  base.write_text(
+    base.read_text() + '\nfrom robel_dm.hardware import physics  # noqa\n'
+  )
+  result = _lint_imports(python_path=tmp_path)
+  assert result.returncode != 0, result.stdout
+  assert 'robel_dm.tasks.base -> robel_dm.hardware.physics' in result.stdout
+
+
+@pytest.mark.parametrize(
+  'module',
+  sorted(p for p in _PACKAGE.rglob('*.py') if p != _ADAPTER),
+  ids=lambda p: str(p.relative_to(_ROOT)),
+)
+def test_only_the_adapter_uses_dm_control_private_names(module):
+  text = module.read_text()
+  used = [
+    name
+    for name in _DM_CONTROL_PRIVATE
+    if re.search(rf'\.{name}\b|def {name}\b', text)
+  ]
+  assert not used, f'{module.name} uses dm_control private names {used}'
+
+
+def test_the_adapter_documents_every_private_name_it_uses():
+  text = _ADAPTER.read_text()
+  docstring = text.split('"""')[1]
+  code = text.split('"""', 2)[2]
+  used = {
+    name
+    for name in _DM_CONTROL_PRIVATE
+    if re.search(rf'\.{name}\b|def {name}\b', code)
+  }
+  assert used, 'the adapter no longer uses private names: update this test'
+  assert not [name for name in used if name not in docstring]
+
+
+@pytest.mark.parametrize(
+  'module',
+  sorted(_PACKAGE.rglob('*.py')),
+  ids=lambda p: str(p.relative_to(_ROOT)),
+)
+def test_modules_stay_small(module):
+  lines = len(module.read_text().splitlines())
+  assert lines <= _MAX_MODULE_LINES, f'{module.name}: {lines} lines'
