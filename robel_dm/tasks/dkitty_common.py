@@ -13,6 +13,7 @@ observations are kept with their meanings and units:
 """
 
 import dataclasses
+import math
 
 from dm_control import mjcf
 import numpy as np
@@ -20,6 +21,7 @@ import numpy as np
 from robel_dm import constants, geometry, randomization
 from robel_dm.arenas import floor
 from robel_dm.entities import dkitty
+from robel_dm.tasks import base
 
 # Observation features every D'Kitty task has, in ROBEL's observation-dict
 # order; the first five come from the torso, contiguously.
@@ -137,6 +139,52 @@ class Torso:
     return self.rotation[:2, 1]
 
 
+@dataclasses.dataclass(frozen=True)
+class Marker:
+  """A mocap marker of a floor target: a cylinder (radius, half-height),
+  coloured, its centre this high above the target, m."""
+
+  name: str
+  size: tuple[float, float]
+  rgba: tuple[float, float, float, float]
+  height: float
+
+
+class FloorTarget:
+  """A target on the floor, shown by markers that stand on it.
+
+  On a robot with a motion tracker that sees the target, the tracked
+  position replaces the placed one every step (`track`).
+  """
+
+  def __init__(self, arena: floor.KittyFloor, *markers: Marker):
+    self._bodies = [
+      arena.add_marker(m.name, size=m.size, rgba=m.rgba) for m in markers
+    ]
+    self._heights = [m.height for m in markers]
+    self.position = np.zeros(2)  # x, y, m.
+
+  def after_compile(self, physics: mjcf.Physics) -> None:
+    mocap_pos = physics.data.mocap_pos
+    self._marker_pos = [  # Views of MjData.
+      mocap_pos[base.mocap_index(physics, body)] for body in self._bodies
+    ]
+
+  def place(self, angle: float, distance: float) -> None:
+    """Puts the target `distance` m from the origin along `angle` rad
+    (counter-clockwise from +x), with its markers."""
+    self.position[:] = math.cos(angle), math.sin(angle)
+    self.position *= distance
+    for marker, height in zip(self._marker_pos, self._heights, strict=True):
+      marker[:] = (*self.position, height)
+
+  def track(self, robot_io) -> None:
+    """Takes the tracked target's position, if the robot tracks one."""
+    tracked = robot_io.tracked_target()
+    if tracked is not None:
+      self.position[:] = tracked
+
+
 class KittyParts:
   """What every D'Kitty task does the same way, for composition in a task.
 
@@ -148,6 +196,13 @@ class KittyParts:
     self.scene = Scene(terrain=terrain)
     self.torso = Torso(self.scene)
     self.upright = upright
+    self._targets = []
+
+  def add_target(self, *markers: Marker) -> FloorTarget:
+    """A target on the floor with these markers, bound with the parts."""
+    target = FloorTarget(self.arena, *markers)
+    self._targets.append(target)
+    return target
 
   @property
   def arena(self) -> floor.KittyFloor:
@@ -185,6 +240,8 @@ class KittyParts:
 
   def after_compile(self, physics: mjcf.Physics) -> None:
     self.torso.after_compile(physics)
+    for target in self._targets:
+      target.after_compile(physics)
 
   def reset(
     self, physics, random_state, leg_pose, position=None, yaw: float = 0.0

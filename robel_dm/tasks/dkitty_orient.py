@@ -46,6 +46,9 @@ REWARD = OrientReward()
 
 # The target stands this far from the origin, m, at heading angle + pi/2.
 _TARGET_DISTANCE = 1.0
+_TARGET_MARKER = dkitty_common.Marker(
+  'target', size=(0.05, 0.1), rgba=(0.9, 0.2, 0.2, 1), height=0.1
+)
 
 # OrientRandom: initial heading and target heading, rad.
 _RANDOM_INITIAL_YAW = distributions.Uniform(-np.pi / 3, np.pi / 3)
@@ -94,12 +97,9 @@ class OrientTask(base.RobelTask):
         `observation_keys`, `action_bounds`).
     """
     self._kitty = dkitty_common.KittyParts(terrain=terrain, upright=_UPRIGHT)
-    self._target_body = self._kitty.arena.add_marker(
-      'target', size=(0.05, 0.1), rgba=(0.9, 0.2, 0.2, 1)
-    )
+    self._target = self._kitty.add_target(_TARGET_MARKER)
     self._initial_yaw = initial_yaw
     self._target_yaw = target_yaw
-    self._target = np.zeros(2)
     self._angle_error = 0.0
     super().__init__(
       **self._kitty.robel_task_arguments(_EPISODE_STEPS, **options)
@@ -110,13 +110,11 @@ class OrientTask(base.RobelTask):
   @property
   def target(self) -> np.ndarray:
     """The target's position on the floor, m."""
-    return self._target.copy()
+    return self._target.position.copy()
 
   def after_compile(self, physics, random_state) -> None:
     super().after_compile(physics, random_state)
     self._kitty.after_compile(physics)
-    target = base.mocap_index(physics, self._target_body)
-    self._target_pos = physics.data.mocap_pos[target]  # A view.
 
   def _initialize_state(self, physics, random_state) -> None:
     yaw = float(
@@ -126,22 +124,16 @@ class OrientTask(base.RobelTask):
       variation.evaluate(self._target_yaw, random_state=random_state)
     )
     # Headings count from +y, so a heading h points along angle h + pi/2.
-    angle = target_yaw + np.pi / 2
-    self._target[:] = math.cos(angle), math.sin(angle)
-    self._target *= _TARGET_DISTANCE
-    self._target_pos[:2] = self._target
-    self._target_pos[2] = 0.1
+    self._target.place(target_yaw + np.pi / 2, _TARGET_DISTANCE)
     self._kitty.reset(physics, random_state, dkitty.STANDING_POSE, yaw=yaw)
 
   def _compute_features(self, physics) -> None:
     del physics
     self._kitty.update(self._sensed_qpos, self._sensed_qvel)
-    tracked = self._robot_io.tracked_target()
-    if tracked is not None:  # On a robot with a tracked target.
-      self._target[:] = tracked
+    self._target.track(self._robot_io)
     torso = self._kitty.torso
     facing = torso.facing
-    to_target = self._target - torso.position[:2]
+    to_target = self._target.position - torso.position[:2]
     distance = geometry.norm(to_target)
     desired = to_target / distance if distance > 0 else to_target
     cosine = min(max(geometry.cosine(facing, desired), -1.0), 1.0)

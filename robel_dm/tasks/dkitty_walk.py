@@ -4,7 +4,6 @@ ROBEL's task: docs/robel_reference.md section 2.7.
 """
 
 import dataclasses
-import math
 
 from dm_control.composer import variation
 from dm_control.composer.variation import distributions
@@ -15,6 +14,16 @@ from robel_dm.entities import dkitty
 from robel_dm.tasks import base, dkitty_common
 
 _EPISODE_STEPS = 160  # 16 s at 10 Hz.
+# The target's disc and ROBEL's heading marker (the heading target is the
+# target itself).
+_TARGET_MARKERS = (
+  dkitty_common.Marker(
+    'target', size=(0.5, 0.005), rgba=(0.2, 0.8, 0.3, 0.6), height=0.005
+  ),
+  dkitty_common.Marker(
+    'heading', size=(0.05, 0.25), rgba=(0.9, 0.6, 0.1, 1), height=0.25
+  ),
+)
 _UPRIGHT = dkitty_common.Upright(threshold=0.9, reward=1.0, falling_reward=-500)
 
 
@@ -91,17 +100,9 @@ class WalkTask(base.RobelTask):
         `observation_keys`, `action_bounds`).
     """
     self._kitty = dkitty_common.KittyParts(terrain=terrain, upright=_UPRIGHT)
-    arena = self._kitty.arena
-    self._target_body = arena.add_marker(
-      'target', size=(0.5, 0.005), rgba=(0.2, 0.8, 0.3, 0.6)
-    )
-    # ROBEL's heading marker; the heading target is the target itself.
-    self._heading_body = arena.add_marker(
-      'heading', size=(0.05, 0.25), rgba=(0.9, 0.6, 0.1, 1)
-    )
+    self._target = self._kitty.add_target(*_TARGET_MARKERS)
     self._target_distance = target_distance
     self._target_angle = target_angle
-    self._target = np.zeros(2)
     self._distance = 0.0
     self._heading = 0.0
     super().__init__(
@@ -113,14 +114,11 @@ class WalkTask(base.RobelTask):
   @property
   def target(self) -> np.ndarray:
     """The target's position on the floor, m."""
-    return self._target.copy()
+    return self._target.position.copy()
 
   def after_compile(self, physics, random_state) -> None:
     super().after_compile(physics, random_state)
     self._kitty.after_compile(physics)
-    mocap_pos = physics.data.mocap_pos
-    self._target_pos = mocap_pos[base.mocap_index(physics, self._target_body)]
-    self._heading_pos = mocap_pos[base.mocap_index(physics, self._heading_body)]
 
   def _initialize_state(self, physics, random_state) -> None:
     distance = float(
@@ -129,29 +127,24 @@ class WalkTask(base.RobelTask):
     angle = np.pi / 2 + float(
       variation.evaluate(self._target_angle, random_state=random_state)
     )
-    self._target[:] = math.cos(angle), math.sin(angle)
-    self._target *= distance
-    self._target_pos[:] = (*self._target, 0.005)
-    self._heading_pos[:] = (*self._target, 0.25)
+    self._target.place(angle, distance)
     self._kitty.reset(physics, random_state, dkitty.STANDING_POSE)
 
   def _compute_features(self, physics) -> None:
     del physics
     self._kitty.update(self._sensed_qpos, self._sensed_qvel)
-    io = self._robot_io
-    tracked = io.tracked_target()
-    if tracked is not None:  # On a robot with a tracked target.
-      self._target[:] = tracked
+    self._target.track(self._robot_io)
+    target = self._target.position
     torso = self._kitty.torso
-    target_error = self._target - torso.position[:2]
-    tracked_heading = io.tracked_heading()
+    target_error = target - torso.position[:2]
+    tracked_heading = self._robot_io.tracked_heading()
     towards = (
       target_error
       if tracked_heading is None
       else tracked_heading - torso.position[:2]
     )
     self._heading = geometry.cosine(torso.facing, towards)
-    self._target_features[:] = (self._heading, *self._target, *target_error)
+    self._target_features[:] = (self._heading, *target, *target_error)
     self._distance = geometry.norm(target_error)
 
   def _compute_reward_terms(self) -> dict[str, float]:
