@@ -27,17 +27,20 @@ import numpy as np
 from robel_dm import suite
 from robel_dm.entities import dkitty
 from robel_dm.hardware import config as config_lib
+from robel_dm.hardware import control_table as table
 from robel_dm.hardware import dynamixel
 from robel_dm.hardware import environment as hardware
 
 # Wire bytes of one step at 1 Mbps (docs/dynamixel.md section 5): sync-read
-# instruction 14 + N, N status replies of 21 bytes, sync write 14 + 5 N.
+# instruction 14 + N, N status replies of 11 bytes + the state block (goal
+# read-back, current, velocity, position), sync write 14 + 5 N.
 _BAUD = 1_000_000
 _TASKS = {'dclaw': 'pose_fixed', 'dkitty': 'stand_fixed'}
 
 
 def physical_bus_ms(motors: int) -> float:
-  wire_bytes = (14 + motors) + 21 * motors + (14 + 5 * motors)
+  reply = 11 + table.STATE_BLOCK_SIZE
+  wire_bytes = (14 + motors) + reply * motors + (14 + 5 * motors)
   return wire_bytes * 10 / _BAUD * 1e3
 
 

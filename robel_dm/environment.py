@@ -175,6 +175,7 @@ class Environment(composer.Environment):
     kwargs.setdefault('recompile_mjcf_every_episode', False)
     kwargs.setdefault('strip_singleton_obs_buffer_dim', True)
     self._batch_substeps = False
+    self._closed = False
     self._physics_factory = physics_factory or mjcf.Physics.from_mjcf_model
     super().__init__(task, **kwargs)
     # The constructor has compiled the model. composer compiles it again at
@@ -231,12 +232,28 @@ class Environment(composer.Environment):
     super().add_extra_hook(hook_name, hook_callable)
     self._prepare_batching()
 
+  def close(self) -> None:
+    """Frees the physics; closing again does nothing."""
+    if self._closed:
+      return
+    self._closed = True
+    super().close()
+
+  def _check_open(self) -> None:
+    if self._closed:
+      raise RuntimeError(
+        'the environment is closed; load a new one to continue'
+      )
+
   def reset(self) -> dm_env.TimeStep:
+    self._check_open()
     timestep = super().reset()
     self._prepare_batching()
     return timestep
 
   def step(self, action) -> dm_env.TimeStep:
+    if self._closed:
+      self._check_open()
     if not self._batch_substeps or self._reset_next_step:
       return super().step(action)
 

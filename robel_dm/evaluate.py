@@ -255,6 +255,10 @@ def main(argv):
   except (ValueError, RuntimeError) as error:
     print(f'error: {error}', file=sys.stderr)
     return 2
+  except KeyboardInterrupt:
+    # A robot's motors were released on the way out (see hardware.shutdown).
+    print('interrupted', file=sys.stderr)
+    return 130
   print(format_table(results))
   if _OUTPUT.value:
     with open(_OUTPUT.value, 'w') as f:

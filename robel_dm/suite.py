@@ -113,6 +113,11 @@ def load(
     raise ValueError(f'bad task_kwargs for {domain}/{task}: {error}') from error
   if time_limit is None:
     time_limit = task_instance.time_limit
+  elif not time_limit > 0:  # Also NaN.
+    raise ValueError(
+      f'time_limit must be a positive number of seconds (inf: no limit), '
+      f'got {time_limit!r}'
+    )
   # composer ends an episode once physics time >= time_limit, and the summed
   # physics timesteps fall just short of round numbers (40 x 0.1 s sums to
   # 3.9999...): without this margin a 4 s limit would run 41 steps.

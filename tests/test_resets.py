@@ -40,11 +40,12 @@ def test_stuck_finger_retries_disentangles_then_fails_naming_it(monkeypatch):
   original = sim_robot.SimulatedRobot.on_write
 
   def stuck_motor_21(self, servos, ids):
-    # Motor 21 (a middle joint) is stuck at joint angle 0 (motor angle pi,
-    # 2048 ticks) whatever it is told; the reset pose wants -pi/3.
+    # Motor 21 (a middle joint) takes its goals but is stuck at joint angle
+    # 0 whatever it is told; the reset pose wants -pi/3.
     torque_seen.append(servos[21].torque_enabled)
-    servos[21].set(table.GOAL_POSITION, 2048)
     original(self, servos, ids)
+    actuator = self._motors[21][3]  # noqa: SLF001
+    self._data.ctrl[actuator] = 0.0  # noqa: SLF001
 
   monkeypatch.setattr(sim_robot.SimulatedRobot, 'on_write', stuck_motor_21)
   env = suite.load('dclaw', 'turn_fixed', seed=0, device_path='virtual')

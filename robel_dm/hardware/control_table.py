@@ -88,9 +88,11 @@ INDIRECT_TARGETS = range(64, 662)
 # Addresses 0..661 (the last Indirect Data).
 CONTROL_TABLE_SIZE = 662
 
-# One sync read covers current, velocity and position (126..135).
-STATE_BLOCK_ADDRESS = PRESENT_CURRENT.address
-STATE_BLOCK_SIZE = 10
+# One sync read covers goal position through present position (116..135):
+# the goal read back confirms the last goal write, then current, velocity
+# and position.
+STATE_BLOCK_ADDRESS = GOAL_POSITION.address
+STATE_BLOCK_SIZE = PRESENT_POSITION.address + 4 - GOAL_POSITION.address
 
 # Operating modes (address 11).
 OPERATING_MODES = {

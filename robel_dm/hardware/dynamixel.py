@@ -8,37 +8,51 @@ so it has to be read on its own). Values are in motor units turned into SI:
 motor angle in rad (ticks * 2 pi / 4096), velocity in rad/s, current in mA
 (per model: W-series 2.69 mA, V-series 1.34 mA per unit).
 
-Failures raise `DynamixelError`s that name the motors involved. Nothing
-stale is ever returned: a read either delivers fresh data for every motor
-or raises.
+Failures raise `DynamixelError`s that name the motors involved and how they
+failed (silent, or corrupted replies; a silent bus is named as such).
+Nothing stale is ever returned: a read either delivers fresh data for every
+motor or raises. The state read also reads back each motor's Goal Position,
+so a goal write lost on the way (a sync write has no reply) is noticed
+within the control step, sent again, and reported if it is lost again.
+
+A client owns its port exclusively (see `port`), and until it disconnects it
+is registered with `shutdown`, which releases its motors however the
+session ends.
 """
 
-import atexit
 import logging
 import struct
 import threading
 import time
-import weakref
 
 import numpy as np
 
 from robel_dm.hardware import control_table as table
+from robel_dm.hardware import port as port_lib
+from robel_dm.hardware import register_access, shutdown
 
 # Re-exported: callers catch `dynamixel.DynamixelError` and its subclasses.
-from robel_dm.hardware.dynamixel_errors import (
+from robel_dm.hardware.dynamixel_errors import (  # noqa: F401
   DynamixelError,
   MissingMotorError,
   MotorFaultError,
+  RobotReleasedError,
   describe_hardware_errors,
 )
+from robel_dm.hardware.port import PortBusyError, PortError  # noqa: F401
 
 try:
   import dynamixel_sdk as sdk
 except ImportError:  # pragma: no cover - exercised without the extra
   sdk = None
 
-_STATE_FORMAT = struct.Struct('<hii')  # current (2), velocity (4), position.
+# The state block (control_table.STATE_BLOCK_*): goal position (4), realtime
+# tick, moving, moving status and PWM (6, skipped), current (2), velocity (4),
+# position (4).
+_STATE_FORMAT = struct.Struct('<i6xhii')
 _TORQUE_RETRY_INTERVAL_S = 0.05
+# A goal write that two state reads in a row find missing is an error.
+_MAX_LOST_GOAL_WRITES = 2
 
 
 def _require_sdk():
@@ -60,20 +74,7 @@ def _port_handler_class():
   return PortHandler
 
 
-# Open clients, closed at interpreter exit so no motor keeps its torque.
-_OPEN_CLIENTS: 'weakref.WeakSet[DynamixelClient]' = weakref.WeakSet()
-_OPEN_CLIENTS_LOCK = threading.Lock()
-
-
-@atexit.register
-def _close_all_clients():
-  with _OPEN_CLIENTS_LOCK:
-    clients = list(_OPEN_CLIENTS)
-  for client in clients:
-    client.disconnect()
-
-
-class DynamixelClient:
+class DynamixelClient(register_access.RegisterAccess):
   """Talks to a fixed set of motors on one port.
 
   Use as a context manager, or call `connect()` and `disconnect()`;
@@ -118,6 +119,14 @@ class DynamixelClient:
     self._models: dict[int, int] = {}
     self._current_units = np.zeros(len(ids))
     self._state = np.zeros((3, len(ids)))  # current, velocity, position.
+    # Goal ticks last sent to each motor, and whether a read has yet to
+    # confirm them; consecutive reads that found them missing.
+    self._sent_goals = np.zeros(len(ids), dtype=np.int64)
+    self._goal_pending = np.zeros(len(ids), dtype=bool)
+    self._lost_goal_writes = np.zeros(len(ids), dtype=int)
+    self._column = {motor_id: i for i, motor_id in enumerate(ids)}
+    self._disconnect_lock = threading.Lock()
+    self._bus_silent = False  # Known to answer nothing: skip confirmations.
     self._state_reader = None
     self._goal_writer = None
     self._register_readers = {}  # Address -> GroupSyncRead of all motors.
@@ -167,11 +176,16 @@ class DynamixelClient:
       raise DynamixelError(
         f'cannot open {self._device_path} at {self._baud_rate} baud'
       )
+    try:
+      port_lib.lock_exclusively(port.ser.fileno(), self._device_path)
+    except BaseException:
+      port.closePort()
+      raise
     self._port = port
     self._packets = sdk.PacketHandler(table.PROTOCOL_VERSION)
     self._probing = not check_motors
-    with _OPEN_CLIENTS_LOCK:
-      _OPEN_CLIENTS.add(self)
+    self._bus_silent = False
+    shutdown.register(self, self.disconnect)
     if self._probing:
       return
     try:
@@ -219,38 +233,70 @@ class DynamixelClient:
   def disconnect(self) -> None:
     """Turns every motor's torque off (best effort) and closes the port.
 
-    After `connect(check_motors=False)` the torque is left as it is.
+    The torque-off goes out first as one broadcast (no reply needed, so a
+    partly silent bus cannot delay it), then each motor's is confirmed. No
+    signal interrupts it, and a failing port does not stop it. After
+    `connect(check_motors=False)` the torque is left as it is.
     """
-    if self._port is None:
-      return
-    if self._probing:
-      self._close_port()
-      return
+    with self._disconnect_lock, shutdown.deferred_signals():
+      if self._port is None:
+        return
+      try:
+        if not self._probing:
+          self._release_all()
+      finally:
+        self._close_port()
+
+  def release(self) -> None:
+    """Turns every motor's torque off now, leaving the port open.
+
+    Like `disconnect`, never interrupted by a signal and never stopped by a
+    failing port (failures are logged).
+    """
+    with self._disconnect_lock, shutdown.deferred_signals():
+      if self._port is not None and not self._probing:
+        self._release_all()
+
+  def _release_all(self) -> None:
+    """Torque off for every motor: broadcast, then confirmed one by one."""
     try:
-      for motor_id in self._ids:
-        for _ in range(self._retries + 1):
+      with port_lib.port_errors(self._device_path, 'releasing the motors'):
+        self._call(
+          self._packets.write1ByteTxOnly,
+          sdk.BROADCAST_ID,
+          table.TORQUE_ENABLE.address,
+          0,
+        )
+        if self._bus_silent:
+          return
+        for motor_id in self._ids:
           result, _ = self._call(
             self._packets.write1ByteTxRx,
             motor_id,
             table.TORQUE_ENABLE.address,
             0,
           )
-          if result == sdk.COMM_SUCCESS:
-            break
-        else:
-          logging.error('could not turn off torque of motor %d', motor_id)
-    finally:
-      self._close_port()
+          if result != sdk.COMM_SUCCESS:
+            logging.error(
+              'motor %d did not confirm its torque off on %s (a broadcast '
+              'asked every motor)',
+              motor_id,
+              self._device_path,
+            )
+    except port_lib.PortError as error:
+      logging.error('could not release the motors: %s', error)
 
   def _close_port(self) -> None:
     port, self._port = self._port, None
     self._register_readers = {}
     self._state_reader = self._goal_writer = None
-    with _OPEN_CLIENTS_LOCK:
-      _OPEN_CLIENTS.discard(self)
+    shutdown.unregister(self)
     if port is not None:
       port.is_using = False
-      port.closePort()
+      try:
+        port.closePort()  # Also drops the port's lock.
+      except port_lib.OS_ERRORS as error:
+        logging.error('closing %s failed: %s', self._device_path, error)
 
   def __enter__(self) -> 'DynamixelClient':
     self.connect()
@@ -281,54 +327,42 @@ class DynamixelClient:
     """
     self._port.is_using = False
     try:
-      return function(self._port, *args)
+      with port_lib.port_errors(self._device_path, 'talking to the motors'):
+        return function(self._port, *args)
     finally:
       self._port.is_using = False
 
-  def ping(self, motor_id: int) -> int:
+  def ping(self, motor_id: int, attempts: int | None = None) -> int:
     """Pings a motor and returns its model number.
+
+    Args:
+      motor_id: the motor.
+      attempts: how often to try; 1 + the client's retries by default.
 
     Raises:
       MissingMotorError: if it does not answer.
     """
     self._check_connected()
-    model = self._ping(motor_id)
+    model = self._ping(motor_id, attempts)
     if model is None:
-      raise MissingMotorError(f'motor {motor_id} does not answer', [motor_id])
+      raise MissingMotorError(
+        f'motor {motor_id} does not answer on {self._device_path}', [motor_id]
+      )
     return model
 
-  def _ping(self, motor_id: int) -> int | None:
-    for _ in range(self._retries + 1):
+  def _ping(self, motor_id: int, attempts: int | None = None) -> int | None:
+    return self._ping_result(motor_id, attempts)[0]
+
+  def _ping_result(
+    self, motor_id: int, attempts: int | None = None
+  ) -> tuple[int | None, int]:
+    """(model number or None, the SDK's result of the last attempt)."""
+    result = None
+    for _ in range(self._retries + 1 if attempts is None else attempts):
       model, result, _ = self._call(self._packets.ping, motor_id)
       if result == sdk.COMM_SUCCESS:
-        return model
-    return None
-
-  def broadcast_ping(self) -> dict[int, tuple[int, int]]:
-    """Pings every ID at once (Broadcast Ping; takes ~0.8 s whatever answers).
-
-    Returns:
-      Motor ID -> (model number, firmware version) of the motors that
-      answered. A garbled reply loses the motors after it: ping the motors
-      that must be there one by one to be sure.
-
-    Raises:
-      DynamixelError: if the ping cannot be sent.
-    """
-    self._check_connected()
-    found, result = self._call(self._packets.broadcastPing)
-    if result not in (
-      sdk.COMM_SUCCESS,
-      sdk.COMM_RX_TIMEOUT,
-      sdk.COMM_RX_CORRUPT,
-    ):
-      raise DynamixelError(
-        f'broadcast ping failed: {self._packets.getTxRxResult(result)}'
-      )
-    return {
-      motor_id: (model, firmware)
-      for motor_id, (model, firmware) in sorted(found.items())
-    }
+        return model, result
+    return None, result
 
   def _silent_motors(self, motor_ids) -> list[int]:
     return [i for i in motor_ids if self._ping(i) is None]
@@ -336,46 +370,119 @@ class DynamixelClient:
   def read_state(self) -> np.ndarray:
     """Reads current (mA), velocity (rad/s) and position (rad) of all motors.
 
+    The same transaction reads back each motor's Goal Position: a goal sent
+    since the last read that did not arrive is sent again (and logged); lost
+    twice in a row, it raises.
+
     Returns:
       A (3, n) array, rows current, velocity, position, columns in
       `motor_ids` order. The array is reused by the next call.
 
     Raises:
-      MissingMotorError: if motors stop answering (named).
-      DynamixelError: if the transaction keeps failing.
+      MissingMotorError: naming the motors that stopped answering, or the
+        whole bus if none answers.
+      DynamixelError: naming the motors whose replies are corrupted, or
+        whose goal writes keep getting lost.
     """
     self._check_motors_checked()
     reader = self._state_reader
-    result = None
+    failures = []  # (first motor without a valid reply, SDK result).
     for _ in range(self._retries + 1):
-      self._port.is_using = False
-      try:
-        result = reader.txRxPacket()
-      finally:
-        self._port.is_using = False
-      if result == sdk.COMM_SUCCESS and all(
-        reader.isAvailable(i, table.STATE_BLOCK_ADDRESS, table.STATE_BLOCK_SIZE)
-        for i in self._ids
-      ):
+      result = self._call(lambda port: reader.txRxPacket())
+      if result == sdk.COMM_SUCCESS:
         break
+      failures.append((self._first_unread(reader), result))
     else:
-      silent = self._silent_motors(self._ids)
-      if silent:
-        raise MissingMotorError(
-          f'motors {silent} stopped answering on {self._device_path}', silent
-        )
-      raise DynamixelError(
-        f'reading motors {list(self._ids)} failed: '
-        f'{self._packets.getTxRxResult(result)}',
-        self._ids,
-      )
+      raise self._read_failure(failures)
     state = self._state
+    goals = np.empty(len(self._ids), dtype=np.int64)
     for column, motor_id in enumerate(self._ids):
-      state[:, column] = _STATE_FORMAT.unpack(bytes(reader.data_dict[motor_id]))
+      goal, *state[:, column] = _STATE_FORMAT.unpack(
+        bytes(reader.data_dict[motor_id])
+      )
+      goals[column] = goal
     state[0] *= self._current_units
     state[1] *= table.RADIANS_PER_SECOND_PER_UNIT
     state[2] *= table.RADIANS_PER_TICK
+    if self._goal_pending.any():
+      self._confirm_goals(goals)
     return state
+
+  def _first_unread(self, reader) -> int | None:
+    """The motor at which a failed sync read stopped (the SDK reads the
+    replies in order and stops at the first bad one)."""
+    for motor_id in self._ids:
+      if len(reader.data_dict.get(motor_id) or ()) != table.STATE_BLOCK_SIZE:
+        return motor_id
+    return None
+
+  def _read_failure(self, failures) -> DynamixelError:
+    """The error that names who failed a state read, and how."""
+    path = self._device_path
+    corrupted = sorted(
+      {i for i, result in failures if result == sdk.COMM_RX_CORRUPT}
+    )
+    if len(corrupted) == 1 and all(
+      result == sdk.COMM_RX_CORRUPT for _, result in failures
+    ):
+      return DynamixelError(
+        f'motor {corrupted[0]} answered with corrupted replies (bad '
+        f'checksum) {len(failures)} times in a row on {path}: check its '
+        'cable and connectors',
+        corrupted,
+      )
+    # One ping each, no retry: a silent bus is recognized in well under 1 s.
+    silent, garbled = [], []
+    for motor_id in self._ids:
+      model, result = self._ping_result(motor_id, attempts=1)
+      if model is None:
+        (garbled if result == sdk.COMM_RX_CORRUPT else silent).append(motor_id)
+    if len(silent) == len(self._ids):
+      self._bus_silent = True
+      return MissingMotorError(
+        f'no motor answers on {path}: check power and cable', silent
+      )
+    if silent:
+      return MissingMotorError(
+        f'motors {silent} stopped answering on {path}', silent
+      )
+    corrupted = sorted(set(corrupted) | set(garbled))
+    if corrupted:
+      return DynamixelError(
+        f'motors {corrupted} answered with corrupted replies (bad checksum) '
+        f'on {path}: check their cables and connectors',
+        corrupted,
+      )
+    result = failures[-1][1]
+    return DynamixelError(
+      f'reading motors {list(self._ids)} on {path} failed: '
+      f'{self._packets.getTxRxResult(result)}',
+      self._ids,
+    )
+
+  def _confirm_goals(self, goals: np.ndarray) -> None:
+    """Checks that the motors hold the goals last sent; re-sends lost ones.
+
+    Raises:
+      DynamixelError: naming motors whose goal was lost twice in a row.
+    """
+    pending = self._goal_pending
+    lost = pending & (goals != self._sent_goals)
+    self._lost_goal_writes[pending & ~lost] = 0
+    pending &= lost
+    if not lost.any():
+      return
+    self._lost_goal_writes[lost] += 1
+    ids = [self._ids[i] for i in np.flatnonzero(lost)]
+    if self._lost_goal_writes.max() >= _MAX_LOST_GOAL_WRITES:
+      raise DynamixelError(
+        f'motors {ids} did not take their goal positions '
+        f'{_MAX_LOST_GOAL_WRITES} times in a row on {self._device_path} '
+        '(lost packets, or goals beyond their position limits)',
+        ids,
+      )
+    logging.warning('goal write lost on motors %s: sent again', ids)
+    self._send_goal_ticks(self._sent_goals[lost], ids)
 
   def write_goal_positions(self, positions, motor_ids=None) -> None:
     """Sends goal positions (motor angles, rad) in one sync write.
@@ -400,6 +507,9 @@ class DynamixelClient:
     if not np.all(np.isfinite(positions)):
       raise ValueError(f'non-finite goal positions: {positions.tolist()}')
     ticks = np.rint(positions / table.RADIANS_PER_TICK).astype(np.int64)
+    self._send_goal_ticks(ticks, ids)
+
+  def _send_goal_ticks(self, ticks: np.ndarray, ids) -> None:
     writer = self._goal_writer
     writer.clearParam()
     for motor_id, tick in zip(ids, ticks.tolist(), strict=True):
@@ -411,6 +521,9 @@ class DynamixelClient:
         f'sending goal positions failed: {self._packets.getTxRxResult(result)}',
         ids,
       )
+    columns = [self._column[motor_id] for motor_id in ids]
+    self._sent_goals[columns] = ticks
+    self._goal_pending[columns] = True
 
   def set_torque(self, motor_ids, enabled: bool) -> None:
     """Turns the torque of `motor_ids` on or off, and checks it took.
@@ -451,147 +564,3 @@ class DynamixelClient:
       if refused:
         self.raise_on_hardware_errors(refused)
         raise DynamixelError(f'motors {refused} kept their torque off', refused)
-
-  def read_register(self, item: table.Item, motor_ids=None) -> dict[int, int]:
-    """Reads one control-table item of each motor (individual reads).
-
-    Returns:
-      Motor ID -> value (signed items decoded).
-
-    Raises:
-      MissingMotorError: naming motors that do not answer.
-    """
-    self._check_connected()
-    read = {
-      1: self._packets.read1ByteTxRx,
-      2: self._packets.read2ByteTxRx,
-      4: self._packets.read4ByteTxRx,
-    }[item.size]
-    values, silent = {}, []
-    for motor_id in self._ids if motor_ids is None else motor_ids:
-      for _ in range(self._retries + 1):
-        value, result, _ = self._call(read, motor_id, item.address)
-        if result == sdk.COMM_SUCCESS:
-          values[motor_id] = (
-            table.to_signed(value, item.size) if item.signed else value
-          )
-          break
-      else:
-        silent.append(motor_id)
-    if silent:
-      raise MissingMotorError(
-        f'motors {silent} did not answer reading address {item.address}',
-        silent,
-      )
-    return values
-
-  def read_bytes(self, motor_id: int, address: int, length: int) -> bytes:
-    """Reads `length` raw bytes of a motor's control table from `address`.
-
-    Raises:
-      MissingMotorError: if the motor does not answer.
-      DynamixelError: if it refuses the read (e.g. an Access error).
-    """
-    self._check_connected()
-    for _ in range(self._retries + 1):
-      data, result, error = self._call(
-        self._packets.readTxRx, motor_id, address, length
-      )
-      if result != sdk.COMM_SUCCESS:
-        continue
-      if error & ~table.ALERT_BIT:
-        raise DynamixelError(
-          f'motor {motor_id} refused reading {length} bytes at address '
-          f'{address}: {self._packets.getRxPacketError(error)}',
-          [motor_id],
-        )
-      if len(data) == length:
-        return bytes(data)
-    raise MissingMotorError(
-      f'motor {motor_id} did not answer reading address {address}',
-      [motor_id],
-    )
-
-  def write_register(self, item: table.Item, values: dict[int, int]) -> None:
-    """Writes one control-table item of several motors (individual writes).
-
-    Raises:
-      DynamixelError: naming motors that refuse or do not answer.
-    """
-    self._check_connected()
-    write = {
-      1: self._packets.write1ByteTxRx,
-      2: self._packets.write2ByteTxRx,
-      4: self._packets.write4ByteTxRx,
-    }[item.size]
-    failed = {}
-    for motor_id, value in values.items():
-      raw = table.to_unsigned(int(value), item.size)
-      for _ in range(self._retries + 1):
-        result, error = self._call(write, motor_id, item.address, raw)
-        if result == sdk.COMM_SUCCESS and not error & ~table.ALERT_BIT:
-          break
-      else:
-        failed[motor_id] = (
-          self._packets.getRxPacketError(error)
-          if result == sdk.COMM_SUCCESS
-          else self._packets.getTxRxResult(result)
-        )
-    if failed:
-      raise DynamixelError(
-        f'writing address {item.address} failed: {failed}', list(failed)
-      )
-
-  def sync_read_register(self, item: table.Item) -> dict[int, int]:
-    """Reads one item of every motor in a single sync-read transaction.
-
-    Raises:
-      MissingMotorError: naming motors that do not answer.
-      DynamixelError: if the transaction keeps failing.
-    """
-    self._check_connected()
-    reader = self._register_readers.get(item.address)
-    if reader is None:
-      reader = sdk.GroupSyncRead(
-        self._port, self._packets, item.address, item.size
-      )
-      for motor_id in self._ids:
-        reader.addParam(motor_id)
-      self._register_readers[item.address] = reader
-    for _ in range(self._retries + 1):
-      result = self._call(lambda port: reader.txRxPacket())
-      if result == sdk.COMM_SUCCESS and all(
-        reader.isAvailable(i, item.address, item.size) for i in self._ids
-      ):
-        break
-    else:
-      silent = self._silent_motors(self._ids)
-      if silent:
-        raise MissingMotorError(f'motors {silent} stopped answering', silent)
-      raise DynamixelError(
-        f'reading address {item.address} failed: '
-        f'{self._packets.getTxRxResult(result)}',
-        self._ids,
-      )
-    values = {i: reader.getData(i, item.address, item.size) for i in self._ids}
-    if item.signed:
-      values = {i: table.to_signed(v, item.size) for i, v in values.items()}
-    return values
-
-  def hardware_errors(self, motor_ids=None) -> dict[int, int]:
-    """Hardware Error Status of the motors that have one (bits, see table)."""
-    if motor_ids is None:
-      values = self.sync_read_register(table.HARDWARE_ERROR_STATUS)
-    else:
-      values = self.read_register(table.HARDWARE_ERROR_STATUS, motor_ids)
-    return {i: bits for i, bits in values.items() if bits}
-
-  def raise_on_hardware_errors(self, motor_ids=None) -> None:
-    """Raises `MotorFaultError` if any of the motors has a hardware error."""
-    errors = self.hardware_errors(motor_ids)
-    if errors:
-      raise MotorFaultError(
-        f'hardware error: {describe_hardware_errors(errors)}; the motor '
-        'needs a reboot (power cycle or Reboot instruction)',
-        errors,
-      )

@@ -19,6 +19,10 @@ class MissingMotorError(DynamixelError):
   """Motors that do not answer."""
 
 
+class RobotReleasedError(DynamixelError):
+  """The robot was released after an error and must be reset first."""
+
+
 class MotorFaultError(DynamixelError):
   """Motors that report a hardware error (overload, overheating, ...)."""
 

@@ -12,16 +12,17 @@ time (fast, deterministic, no hardware needed).
 """
 
 from collections.abc import Callable
+import contextlib
 import dataclasses
-import signal
-import threading
+import logging
+import weakref
 
 from dm_control import composer, mjcf
 
 from robel_dm import environment as environment_lib
 from robel_dm.hardware import clock as clock_lib
 from robel_dm.hardware import config as config_lib
-from robel_dm.hardware import dynamixel, resets
+from robel_dm.hardware import dynamixel, resets, shutdown
 from robel_dm.hardware import physics as physics_lib
 from robel_dm.hardware import robot as robot_lib
 from robel_dm.hardware import robot_io as robot_io_lib
@@ -69,7 +70,9 @@ class HardwareEnvironment(environment_lib.Environment):
 
   def __init__(self, task: composer.Task, *, connection: Connection, **kwargs):
     self._connection = connection
-    self._closed = False
+    # Releases the robot once: on close, or when the environment is
+    # garbage-collected without being closed (and at exit, at the latest).
+    self._release = weakref.finalize(self, _disconnect, connection)
     super().__init__(task, physics_factory=self._make_physics, **kwargs)
 
   @property
@@ -113,15 +116,9 @@ class HardwareEnvironment(environment_lib.Environment):
 
   def close(self) -> None:
     """Releases the motors, closes the port (and the virtual bus)."""
-    if self._closed:
-      return
-    self._closed = True
     try:
-      self._connection.robot.release()
-      self._connection.robot.client.disconnect()
+      self._release()
     finally:
-      for stop in self._connection.on_close:
-        stop()
       super().close()
 
   def __enter__(self) -> 'HardwareEnvironment':
@@ -131,17 +128,18 @@ class HardwareEnvironment(environment_lib.Environment):
     self.close()
 
 
-def _install_sigterm_handler() -> None:
-  """Makes SIGTERM exit through Python (so atexit releases the motors)."""
-  if threading.current_thread() is not threading.main_thread():
-    return
-  if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
-
-    def _exit(signum, frame):
-      del frame
-      raise SystemExit(128 + signum)
-
-    signal.signal(signal.SIGTERM, _exit)
+def _disconnect(connection: Connection) -> None:
+  """Releases the motors and closes the port, then whatever else the
+  connection opened (the virtual bus, a tracker), each whatever the others
+  raise."""
+  try:
+    connection.robot.client.disconnect()
+  finally:
+    for stop in connection.on_close:
+      try:
+        stop()
+      except Exception as error:  # noqa: BLE001 (stop every part)
+        logging.error('closing %r failed: %r', stop, error)
 
 
 def make_environment(
@@ -276,12 +274,16 @@ def make_environment(
       client, robot_config.joints, tuple(auxiliary)
     )
     if virtual:
-      # Goals travel as broadcasts without a reply: a ping makes sure the
-      # bus has applied them before the simulation advances.
       first = motor_ids[0]
-      clock = clock_lib.SimulatedClock(
-        simulation, before_advance=lambda: client.ping(first)
-      )
+
+      def sync_with_bus() -> None:
+        # Goals travel as broadcasts without a reply: a ping makes sure the
+        # bus has applied them before the simulation advances. A silent bus
+        # is for the state read that follows to diagnose.
+        with contextlib.suppress(dynamixel.MissingMotorError):
+          client.ping(first, attempts=1)
+
+      clock = clock_lib.SimulatedClock(simulation, before_advance=sync_with_bus)
     else:
       clock = clock_lib.WallClock()
     connection = Connection(
@@ -297,7 +299,7 @@ def make_environment(
       simulation=simulation,
       on_close=on_close,
     )
-    _install_sigterm_handler()
+    shutdown.install_exit_signals()
     return HardwareEnvironment(
       task, connection=connection, **environment_kwargs
     )

@@ -16,7 +16,7 @@ import mujoco
 import numpy as np
 
 from robel_dm.hardware import clock as clock_lib
-from robel_dm.hardware import resets
+from robel_dm.hardware import dynamixel, resets
 from robel_dm.hardware import robot as robot_lib
 
 # A control step later than this past its tick is logged, s.
@@ -93,6 +93,9 @@ class HardwarePhysics(mjcf.Physics):
     self._next_tick = None
     self._last_overrun_log = -np.inf
     self._resetting = False
+    # The error after which the motors were released: no step until a reset
+    # has checked the bus and re-enabled them.
+    self._fault: BaseException | None = None
 
   @property
   def robot(self) -> robot_lib.HardwareRobot:
@@ -122,6 +125,11 @@ class HardwarePhysics(mjcf.Physics):
     if self._pending_substeps < self._substeps:
       return
     self._pending_substeps = 0
+    if self._fault is not None:
+      raise dynamixel.RobotReleasedError(
+        f'the robot was released after an error ({self._fault!r}); reset() '
+        'checks the bus and re-enables the motors before it steps again'
+      )
     try:
       self._robot.write_joint_goals(self.data.ctrl[self._ctrl_index])
       for name, goal in self.auxiliary_goals.items():
@@ -129,8 +137,10 @@ class HardwarePhysics(mjcf.Physics):
       self._wait_for_tick()
       self._read_motors()
       self._robot.check_health()
-    except BaseException:
-      # An error, Ctrl-C or a motor fault: never leave the motors powered.
+    except BaseException as error:
+      # An error, Ctrl-C or a motor fault: never leave the motors powered,
+      # and never step on with them released.
+      self._fault = error
       self._robot.release()
       raise
     self.data.time += self._substeps * self.model.opt.timestep
@@ -142,7 +152,10 @@ class HardwarePhysics(mjcf.Physics):
     Runs the reset procedure (see `resets`); auxiliary motors (the valve)
     are driven to their initial angle and then released for the episode.
     """
+    self._fault = RuntimeError('reset did not finish')
     try:
+      # The bus first: every motor answers, none reports a hardware error.
+      self._robot.check_health(force=True)
       desired = np.array(self._robot.positions)
       desired[: len(self._qpos_index)] = self.data.qpos[self._qpos_index]
       robot = self._robot
@@ -165,9 +178,11 @@ class HardwarePhysics(mjcf.Physics):
         self._tracker.calibrate_origin()
       robot.check_health(force=True)
       self._read_motors()
-    except BaseException:
+    except BaseException as error:
+      self._fault = error
       self._robot.release()
       raise
+    self._fault = None
     self.data.time = 0.0
     self._pending_substeps = 0
     self._next_tick = self._clock.now() + self._period

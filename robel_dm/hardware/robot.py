@@ -1,7 +1,6 @@
 """A robot's motors in joint space: calibrated state, limited goals, health."""
 
 import dataclasses
-import logging
 
 import numpy as np
 
@@ -203,8 +202,6 @@ class HardwareRobot:
       )
 
   def release(self) -> None:
-    """Turns every motor's torque off; logs instead of raising."""
-    try:
-      self._client.set_torque(self._client.motor_ids, False)
-    except dynamixel.DynamixelError as error:
-      logging.error('could not release the motors: %s', error)
+    """Turns every motor's torque off; logs instead of raising, and no
+    signal interrupts it (see `DynamixelClient.release`)."""
+    self._client.release()

@@ -489,7 +489,14 @@ class RobelTask(composer.Task):
       self._safety[2] = count(over)
 
   def _validated_action(self, action) -> np.ndarray:
-    action = np.asarray(action, dtype=np.float64)
+    action = np.asarray(action)
+    if action.dtype != np.float64:
+      if action.dtype.kind not in 'biuf':  # Complex, strings, objects.
+        raise ValueError(
+          f'action must be real numbers, got dtype {action.dtype}: '
+          f'{action.tolist()}'
+        )
+      action = action.astype(np.float64)
     expected = self._last_action.shape
     if action.shape != expected:
       raise ValueError(

@@ -480,6 +480,8 @@ class Bus:
       if servo is None or motor_id in seen:  # An ID may appear only once.
         continue
       seen.add(motor_id)
+      if self.faults.take_lost_write(motor_id):
+        continue
       listens = self._listen(servo, baud_rate, instruction)
       if listens and servo.write(address, data) == Error.NONE:
         touched.append(motor_id)

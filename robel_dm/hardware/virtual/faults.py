@@ -1,7 +1,8 @@
 """Communication faults to inject into a virtual bus, at runtime.
 
 Absent servos (as if unplugged), servos that ignore their next packets,
-status packets with a broken CRC, and the silence of the rest of the chain
+servos whose next group writes (sync or bulk) are lost on the way, status
+packets with a broken CRC, and the silence of the rest of the chain
 after a silent servo in a sync/bulk read (docs/dynamixel.md section 1.7).
 `bus.Bus` consults a `Faults` for every packet.
 """
@@ -21,6 +22,8 @@ class Faults:
       ignores (neither executed nor answered: a timeout).
     corrupt_crc: ID -> how many of its next status packets carry a wrong CRC
       (for a fast read: its block's CRC).
+    lost_writes: ID -> how many of the next group writes (sync or bulk;
+      they have no reply) lose that servo's data on the way.
     chain_break: in a sync/bulk read, servos after a silent one stay silent
       too, as on a real bus (docs/dynamixel.md section 1.7).
     lock: guards the attributes.
@@ -37,6 +40,7 @@ class Faults:
     self.absent = set(absent)
     self.mute = dict(mute or {})
     self.corrupt_crc = dict(corrupt_crc or {})
+    self.lost_writes: dict[int, int] = {}
     self.chain_break = chain_break
 
   def set_absent(self, motor_id: int, absent: bool = True) -> None:
@@ -56,12 +60,18 @@ class Faults:
     with self.lock:
       self.corrupt_crc[motor_id] = self.corrupt_crc.get(motor_id, 0) + count
 
+  def lose_next_write(self, motor_id: int, count: int = 1) -> None:
+    """Loses the servo's data in the next `count` group writes."""
+    with self.lock:
+      self.lost_writes[motor_id] = self.lost_writes.get(motor_id, 0) + count
+
   def clear(self) -> None:
     """Removes every fault (chain_break stays)."""
     with self.lock:
       self.absent.clear()
       self.mute.clear()
       self.corrupt_crc.clear()
+      self.lost_writes.clear()
 
   def is_absent(self, motor_id: int) -> bool:
     if not self.absent:  # Fast path, safe under the GIL.
@@ -72,6 +82,11 @@ class Faults:
   def take_mute(self, motor_id: int) -> bool:
     """Whether the servo ignores this packet (uses up one count)."""
     return self._take(self.mute, motor_id)
+
+  def take_lost_write(self, motor_id: int) -> bool:
+    """Whether this group write's data for the servo is lost (uses up one
+    count)."""
+    return self._take(self.lost_writes, motor_id)
 
   def take_corrupt(self, motor_id: int) -> bool:
     """Whether this status packet gets a wrong CRC (uses up one count)."""

@@ -81,6 +81,8 @@ class VirtualServo:
     self.counters: collections.Counter[int] = collections.Counter()
     self.crc_errors = 0
     self._registered: tuple[int, bytes] | None = None
+    # A current the motor draws whatever its driver says (a stall), units.
+    self._injected_current: int | None = None
 
   def __repr__(self) -> str:
     return (
@@ -233,6 +235,8 @@ class VirtualServo:
       TypeError: for non-integer values.
     """
     with self.lock:
+      if self._injected_current is not None:
+        current_units = self._injected_current
       self.set(table.PRESENT_POSITION, position_ticks)
       self.set(table.PRESENT_VELOCITY, velocity_units)
       self.set(table.PRESENT_CURRENT, current_units)
@@ -240,6 +244,18 @@ class VirtualServo:
       self.set(table.VELOCITY_TRAJECTORY, velocity_units)
       moving = abs(velocity_units) > self.get(table.MOVING_THRESHOLD)
       self.set(table.MOVING, int(moving))
+
+  def inject_current(self, current_units: int | None) -> None:
+    """Makes the motor report this Present Current (model units), as a
+    stalled or shorted motor would, until called with None.
+
+    Raises:
+      ValueError: if the value does not fit the register.
+    """
+    with self.lock:
+      self._injected_current = current_units
+      if current_units is not None:
+        self.set(table.PRESENT_CURRENT, current_units)
 
   # --- Hardware errors -------------------------------------------------------
 

@@ -1,0 +1,412 @@
+"""How a robot session ends: motors released, faults final, one bus owner.
+
+Cases that involve a process ending run a child Python process against a
+standalone virtual bus (its own process, the real dynamixel_sdk), and read
+Torque Enable (address 64) back through the SDK after the child is gone.
+The others run in-process on `device_path='virtual'`.
+"""
+
+import json
+import logging
+import select
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import dynamixel_sdk as sdk
+from dynamixel_sdk import port_handler
+import numpy as np
+import pytest
+
+from robel_dm import suite
+from robel_dm.hardware import config as config_lib
+from robel_dm.hardware import control_table as table
+from robel_dm.hardware import dynamixel, shutdown
+
+_CLAW_IDS = [m.id for m in config_lib.default('dclaw').joints]
+_STARTUP_TIMEOUT_S = 60
+
+
+@pytest.fixture
+def short_timeouts(monkeypatch):
+  """A silent motor costs ~6 ms instead of ~34 ms (fault tests only)."""
+  monkeypatch.setattr(port_handler, 'LATENCY_TIMER', 2)
+
+
+def _wait_for_line(stream, timeout: float) -> str:
+  ready, _, _ = select.select([stream], [], [], timeout)
+  assert ready, 'no output in time'
+  return stream.readline().strip()
+
+
+@pytest.fixture
+def standalone_bus():
+  """A D'Claw's motors on a virtual bus in its own process; its path."""
+  process = subprocess.Popen(
+    [sys.executable, '-m', 'robel_dm.hardware.virtual', '--robot=dclaw',
+     '--driver=ideal'],
+    stdout=subprocess.PIPE,
+    stderr=subprocess.PIPE,
+    text=True,
+  )  # fmt: skip
+  try:
+    yield _wait_for_line(process.stdout, _STARTUP_TIMEOUT_S), process
+  finally:
+    if process.poll() is None:
+      process.send_signal(signal.SIGTERM)
+      try:
+        process.wait(10)
+      except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+
+
+def _torque(device_path: str, ids=tuple(_CLAW_IDS)) -> dict[int, int]:
+  """Torque Enable of each motor, read through the SDK."""
+  port = sdk.PortHandler(device_path)
+  assert port.openPort()
+  try:
+    packets = sdk.PacketHandler(2.0)
+    values = {}
+    for motor_id in ids:
+      value, result, _ = packets.read1ByteTxRx(
+        port, motor_id, table.TORQUE_ENABLE.address
+      )
+      assert result == sdk.COMM_SUCCESS, motor_id
+      values[motor_id] = value
+    return values
+  finally:
+    port.closePort()
+
+
+def _child(device_path: str, body: str) -> subprocess.Popen:
+  """Runs `body` in a child Python with DEVICE set; stdout is a pipe."""
+  code = (
+    'import gc, json, numpy as np\n'
+    'from robel_dm import suite\n'
+    f'DEVICE = {device_path!r}\n' + textwrap.dedent(body)
+  )
+  return subprocess.Popen(
+    [sys.executable, '-c', code],
+    stdout=subprocess.PIPE,
+    stderr=subprocess.PIPE,
+    text=True,
+  )
+
+
+_STEP_FOREVER = """
+env = suite.load('dclaw', 'pose_fixed', device_path=DEVICE, reset='move')
+env.reset()
+print('stepping', flush=True)
+rng = np.random.default_rng(0)
+while True:
+  timestep = env.step(rng.uniform(-0.3, 0.3, 9))
+  if timestep.last():
+    env.reset()
+"""
+
+
+def _wait_for_port_lock(pid: int) -> None:
+  """Waits until process `pid` holds a port's lock (it connected)."""
+  deadline = time.monotonic() + _STARTUP_TIMEOUT_S
+  while time.monotonic() < deadline:
+    with open('/proc/locks') as locks:
+      if any(
+        line.split()[1] == 'FLOCK' and line.split()[4] == str(pid)
+        for line in locks
+      ):
+        return
+    time.sleep(0.05)
+  raise AssertionError(f'process {pid} never connected')
+
+
+def _torque_on_after(child: subprocess.Popen, device_path: str) -> list[int]:
+  child.wait(30)
+  return [i for i, on in _torque(device_path).items() if on]
+
+
+# --- Ends of a session --------------------------------------------------------
+
+
+def test_garbage_collected_environment_releases_its_motors(standalone_bus):
+  device_path, _ = standalone_bus
+  child = _child(
+    device_path,
+    """
+    import dynamixel_sdk as sdk
+    def run():
+      env = suite.load('dclaw', 'turn_fixed', device_path=DEVICE,
+                       reset='move')
+      env.reset()
+      env.step(np.zeros(9))
+    run()
+    gc.collect()
+    # Released already, before exit: read the torque here.
+    port = sdk.PortHandler(DEVICE)
+    assert port.openPort()
+    packets = sdk.PacketHandler(2.0)
+    print(json.dumps([packets.read1ByteTxRx(port, i, 64)[0]
+                      for i in (10, 11, 12, 20, 21, 22, 30, 31, 32, 50)]))
+    port.closePort()
+    """,
+  )
+  output, errors = child.communicate(timeout=60)
+  assert child.returncode == 0, errors
+  assert json.loads(output.strip().splitlines()[-1]) == [0] * 10
+  assert _torque(device_path, _CLAW_IDS + [50]) == dict.fromkeys(
+    _CLAW_IDS + [50], 0
+  )
+
+
+@pytest.mark.parametrize('signum', [signal.SIGHUP, signal.SIGQUIT])
+def test_hangup_and_quit_release_the_motors(standalone_bus, signum):
+  device_path, _ = standalone_bus
+  child = _child(device_path, _STEP_FOREVER)
+  assert _wait_for_line(child.stdout, _STARTUP_TIMEOUT_S) == 'stepping'
+  time.sleep(0.3)  # Mid-episode.
+  child.send_signal(signum)
+  assert _torque_on_after(child, device_path) == []
+  assert child.returncode == 128 + signum
+
+
+def test_a_burst_of_ctrl_c_cannot_interrupt_the_release(standalone_bus):
+  # Ctrl-C every 2 ms until the program has exited: every release it
+  # attempts (on the error, at close, at exit) is hit by signals.
+  device_path, _ = standalone_bus
+  for _ in range(3):
+    child = _child(device_path, _STEP_FOREVER)
+    assert _wait_for_line(child.stdout, _STARTUP_TIMEOUT_S) == 'stepping'
+    time.sleep(0.2)
+    deadline = time.monotonic() + 20
+    while child.poll() is None and time.monotonic() < deadline:
+      child.send_signal(signal.SIGINT)
+      time.sleep(0.002)
+    assert _torque_on_after(child, device_path) == []
+
+
+def test_every_robot_is_released_whatever_another_release_raises(monkeypatch):
+  first = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  second = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  try:
+    first.reset()
+    second.reset()
+
+    def broken():
+      raise ValueError('a bug in a release')
+
+    monkeypatch.setattr(first.robot.client, '_release_all', broken)
+    shutdown.release_all()  # What runs at exit.
+    assert not any(s.torque_enabled for s in second.virtual_bus.servos)
+  finally:
+    monkeypatch.undo()
+    first.close()
+    second.close()
+
+
+# --- Faults -------------------------------------------------------------------
+
+
+def test_after_a_fault_the_environment_refuses_to_step_until_reset(
+  short_timeouts,
+):
+  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  bus = env.virtual_bus
+  try:
+    env.reset()
+    bus.faults.set_absent(31)
+    with pytest.raises(dynamixel.MissingMotorError):
+      env.step(np.zeros(9))
+    bus.faults.clear()  # The motor is back, but the robot is limp.
+    with pytest.raises(dynamixel.RobotReleasedError, match='reset'):
+      env.step(np.zeros(9))
+    # Released while 31 was away (a vanished motor keeps its torque).
+    assert not any(s.torque_enabled for s in bus.servos if s.motor_id != 31)
+    env.reset()  # Checks the bus and re-enables the motors.
+    assert env.step(np.zeros(9)).mid()
+    assert all(bus.servo(i).torque_enabled for i in _CLAW_IDS)
+  finally:
+    env.close()
+
+
+def test_over_current_stops_the_episode_naming_motor_and_current():
+  env = suite.load('dkitty', 'stand_fixed', seed=0, device_path='virtual')
+  bus = env.virtual_bus
+  try:
+    env.reset()
+    unit = table.MODELS[bus.servo(41).model_number][1]  # mA per unit.
+    bus.servo(41).inject_current(round(2000 / unit))  # A stall: 2 A.
+    with pytest.raises(
+      dynamixel.MotorFaultError, match=r'over-current on motors \[41\]: \['
+    ) as error:
+      env.step(env.task.normalize_joint_targets(np.zeros(12)))
+    assert error.value.motor_ids == (41,)
+    current = float(str(error.value).split(': [')[1].split(']')[0])
+    assert current == pytest.approx(2000, abs=unit)
+    assert not any(s.torque_enabled for s in bus.servos)
+  finally:
+    env.close()
+
+
+def test_a_lost_goal_write_is_noticed_and_sent_again(caplog):
+  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  bus = env.virtual_bus
+  try:
+    env.reset()
+    env.step(np.full(9, 0.1))
+    bus.faults.lose_next_write(22)
+    with caplog.at_level(logging.WARNING):
+      env.step(np.full(9, -0.1))  # A new goal for every motor.
+    assert 'goal write lost on motors [22]' in caplog.text
+    env.robot.client.ping(22)  # The resent write has no reply: sync.
+    client = env.robot.client
+    sent = client._sent_goals[client.motor_ids.index(22)]  # noqa: SLF001
+    assert bus.servo(22).goal_position == sent
+  finally:
+    env.close()
+
+
+def test_goal_writes_lost_twice_in_a_row_stop_with_an_error():
+  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  bus = env.virtual_bus
+  try:
+    env.reset()
+    bus.faults.lose_next_write(22, count=3)  # The step's, the resent, next.
+    with pytest.raises(
+      dynamixel.DynamixelError, match=r'motors \[22\] did not'
+    ):
+      env.step(np.full(9, 0.1))
+      env.step(np.full(9, -0.1))
+    assert not any(s.torque_enabled for s in bus.servos)
+  finally:
+    env.close()
+
+
+# --- Errors name what failed --------------------------------------------------
+
+
+def test_corrupted_replies_blame_the_motor_that_sent_them(short_timeouts):
+  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  bus = env.virtual_bus
+  try:
+    env.reset()
+    bus.faults.corrupt_next(22, count=3)  # Every attempt of one read.
+    with pytest.raises(dynamixel.DynamixelError) as error:
+      env.step(np.zeros(9))
+    assert error.value.motor_ids == (22,)
+    assert 'motor 22 answered with corrupted replies' in str(error.value)
+    assert not isinstance(error.value, dynamixel.MissingMotorError)
+  finally:
+    env.close()
+
+
+def test_a_motor_with_a_bad_checksum_is_not_called_silent(short_timeouts):
+  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  bus = env.virtual_bus
+  try:
+    env.reset()
+    bus.faults.corrupt_next(31, count=1000)
+    with pytest.raises(dynamixel.DynamixelError, match='corrupted') as error:
+      env.step(np.zeros(9))
+    assert error.value.motor_ids == (31,)
+    assert 'stopped answering' not in str(error.value)
+  finally:
+    env.close()
+
+
+def test_a_silent_bus_is_named_as_such_after_one_ping_per_motor():
+  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  bus = env.virtual_bus
+  try:
+    env.reset()
+    env.step(np.zeros(9))
+    for servo in bus.servos:
+      bus.faults.set_absent(servo.motor_id)
+    packets = bus.stats['packets']
+    with pytest.raises(dynamixel.MissingMotorError) as error:
+      env.step(np.zeros(9))
+    assert 'no motor answers on' in str(error.value)
+    assert 'check power and cable' in str(error.value)
+    assert sorted(error.value.motor_ids) == _CLAW_IDS
+    # Bounded work: the goal write, the read and its 2 retries, one ping per
+    # motor, and the broadcast release (no per-motor retries on a silent
+    # bus, which took seconds).
+    assert bus.stats['packets'] - packets <= 1 + 3 + len(_CLAW_IDS) + 1
+  finally:
+    env.close()
+
+
+# --- One owner per bus --------------------------------------------------------
+
+
+def test_a_second_environment_on_the_same_port_is_refused():
+  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  try:
+    path = env.robot.client._device_path  # noqa: SLF001
+    other = dynamixel.DynamixelClient(path, _CLAW_IDS)
+    with pytest.raises(dynamixel.PortBusyError, match='this process'):
+      other.connect()
+    assert not other.is_connected
+  finally:
+    env.close()
+
+
+def test_a_second_process_on_the_same_port_is_refused(standalone_bus):
+  device_path, _ = standalone_bus
+  child = _child(device_path, _STEP_FOREVER)
+  try:
+    assert _wait_for_line(child.stdout, _STARTUP_TIMEOUT_S) == 'stepping'
+    client = dynamixel.DynamixelClient(device_path, _CLAW_IDS)
+    with pytest.raises(dynamixel.PortBusyError, match=rf'pid {child.pid}'):
+      client.connect()
+  finally:
+    child.send_signal(signal.SIGTERM)
+    child.wait(30)
+
+
+def test_a_vanished_port_is_named_and_the_command_line_says_so(standalone_bus):
+  device_path, bus_process = standalone_bus
+  evaluation = subprocess.Popen(
+    [sys.executable, '-m', 'robel_dm.evaluate', '--domain=dclaw',
+     '--task=pose_fixed', '--episodes=1000', f'--device_path={device_path}',
+     '--reset=move'],
+    stdout=subprocess.PIPE,
+    stderr=subprocess.PIPE,
+    text=True,
+  )  # fmt: skip
+  _wait_for_port_lock(evaluation.pid)  # Connected.
+  time.sleep(1.0)  # Stepping, in real time.
+  bus_process.kill()  # The bus vanishes, as if unplugged.
+  _, errors = evaluation.communicate(timeout=60)
+  assert evaluation.returncode == 2, errors
+  assert 'Traceback' not in errors, errors
+  lines = [line for line in errors.splitlines() if line.startswith('error:')]
+  assert len(lines) == 1 and device_path in lines[0], errors
+
+
+# --- Validation ---------------------------------------------------------------
+
+
+@pytest.mark.parametrize('time_limit', [float('nan'), 0.0, -1.0])
+def test_bad_time_limits_are_rejected(time_limit):
+  with pytest.raises(ValueError, match='time_limit'):
+    suite.load('dclaw', 'pose_fixed', time_limit=time_limit)
+
+
+def test_complex_actions_are_rejected():
+  env = suite.load('dclaw', 'pose_fixed', seed=0)
+  env.reset()
+  with pytest.raises(ValueError, match='real numbers'):
+    env.step(np.zeros(9) + 0.1j)
+
+
+def test_a_closed_environment_closes_again_quietly_and_never_steps():
+  env = suite.load('dclaw', 'pose_fixed', seed=0)
+  env.reset()
+  env.close()
+  env.close()
+  with pytest.raises(RuntimeError, match='closed'):
+    env.step(np.zeros(9))
+  with pytest.raises(RuntimeError, match='closed'):
+    env.reset()
