@@ -4,8 +4,10 @@ import functools
 import importlib.resources
 import pathlib
 
-# Wheels carry the repository's `xml/` folder inside the package as `xml/`.
+# Wheels carry the repository's `xml/` folder inside the package as `xml/`,
+# and its `policies/` folder (the shipped baselines) as `baseline_policies/`.
 _PACKAGED_DIR = 'xml'
+_PACKAGED_BASELINES = 'baseline_policies'
 
 
 @functools.cache
@@ -38,3 +40,13 @@ def xml_path(*parts: str) -> pathlib.Path:
   if not path.is_file():
     raise FileNotFoundError(f'robel_dm model file missing: {path}')
   return path
+
+
+@functools.cache
+def baselines_dir() -> pathlib.Path:
+  """The folder of the shipped baseline policies (may be empty)."""
+  packaged = pathlib.Path(
+    str(importlib.resources.files('robel_dm') / _PACKAGED_BASELINES)
+  )
+  checkout = pathlib.Path(__file__).resolve().parent.parent / 'policies'
+  return packaged if packaged.is_dir() else checkout

@@ -21,46 +21,6 @@ import numpy as np
 from robel_dm import policies, suite
 from robel_dm.tasks import base
 
-_DOMAIN = flags.DEFINE_string('domain', 'dclaw', 'Task domain.')
-_TASK = flags.DEFINE_string('task', 'pose_fixed', 'Task name in the domain.')
-_EPISODES = flags.DEFINE_integer(
-  'episodes', 10, 'Number of episodes.', lower_bound=1
-)
-_SEED = flags.DEFINE_integer('seed', 0, 'Seed of the environment and policy.')
-_POLICY = flags.DEFINE_enum(
-  'policy', 'random', policies.POLICIES, 'Policy to evaluate.'
-)
-_TASK_KWARGS = flags.DEFINE_string(
-  'task_kwargs',
-  '',
-  'Task arguments: a JSON object (\'{"valve": "valve4"}\') or '
-  'comma-separated key=value pairs (valve=valve4).',
-)
-_OUTPUT = flags.DEFINE_string('output', None, 'Write the results here (JSON).')
-_DEVICE_PATH = flags.DEFINE_string(
-  'device_path',
-  None,
-  'Run on a robot: its Dynamixel bus (e.g. /dev/ttyUSB0, or the path '
-  'printed by `python -m robel_dm.hardware.virtual`), or "virtual" for '
-  'an in-process simulated bus. Default: simulation.',
-)
-_ROBOT_CONFIG = flags.DEFINE_string(
-  'robot_config', None, 'Robot configuration file (JSON) for --device_path.'
-)
-_RESET = flags.DEFINE_enum(
-  'reset',
-  None,
-  ['scripted', 'move', 'manual'],
-  "With --device_path: how the robot is reset (default: the robot's).",
-)
-_GUIDE = flags.DEFINE_enum(
-  'guide',
-  None,
-  ['show', 'interactive'],
-  "With --device_path, D'Claw Turn/Screw: the guide motor shows the goal, "
-  'or a person turns it to set the goal.',
-)
-
 
 def parse_task_kwargs(text: str) -> dict[str, Any]:
   """Parses --task_kwargs: a JSON object or comma-separated key=value pairs.
@@ -98,7 +58,7 @@ def evaluate(
   domain: str,
   task: str,
   episodes: int,
-  policy: str = 'random',
+  policy: str | policies.Policy = 'random',
   seed: int | None = 0,
   task_kwargs: dict[str, Any] | None = None,
   log_every: int = 0,
@@ -113,7 +73,9 @@ def evaluate(
     domain: task domain, e.g. 'dclaw'.
     task: task name, e.g. 'turn_fixed'.
     episodes: number of episodes (>= 1).
-    policy: one of `policies.POLICIES`.
+    policy: a name or path (see `policies.make_policy`), or a callable from
+      timestep to action (a `policies.NumpyPolicy` is checked against the
+      task).
     seed: seed of the environment and the policy.
     task_kwargs: task arguments for `suite.load`.
     log_every: log progress every this many episodes (0: never).
@@ -141,7 +103,12 @@ def evaluate(
     guide=guide,
   )
   try:
-    act = policies.make_policy(policy, env, seed)
+    if callable(policy):
+      act = policy
+      if isinstance(policy, policies.NumpyPolicy):
+        policy.check_task(domain, task, task_kwargs)
+    else:
+      act = policies.make_policy(policy, env, seed, domain, task, task_kwargs)
     records = []
     step_seconds = 0.0
     total_steps = 0
@@ -183,7 +150,7 @@ def evaluate(
     'domain': domain,
     'task': task,
     'task_kwargs': task_kwargs or {},
-    'policy': policy,
+    'policy': policy if isinstance(policy, str) else repr(policy),
     'seed': seed,
     'episodes': episodes,
     'success_rate': float(np.mean([r['success'] for r in records])),
@@ -234,23 +201,72 @@ def format_table(results: dict[str, Any]) -> str:
   return '\n'.join(lines)
 
 
+def _define_flags() -> None:
+  """The command line's flags (defined only when run as a program, so that
+  importing this module defines none)."""
+  flags.DEFINE_string('domain', 'dclaw', 'Task domain.')
+  flags.DEFINE_string('task', 'pose_fixed', 'Task name in the domain.')
+  flags.DEFINE_integer('episodes', 10, 'Number of episodes.', lower_bound=1)
+  flags.DEFINE_integer('seed', 0, 'Seed of the environment and policy.')
+  flags.DEFINE_string(
+    'policy',
+    'random',
+    'Policy to evaluate: random, zero, reference (scripted), baseline (the '
+    "task's shipped trained policy), or the path of a policy.npz or a "
+    'Stable-Baselines3 .zip written by robel_dm.train.',
+  )
+  flags.DEFINE_string(
+    'task_kwargs',
+    '',
+    'Task arguments: a JSON object (\'{"valve": "valve4"}\') or '
+    'comma-separated key=value pairs (valve=valve4).',
+  )
+  flags.DEFINE_string('output', None, 'Write the results here (JSON).')
+  flags.DEFINE_string(
+    'device_path',
+    None,
+    'Run on a robot: its Dynamixel bus (e.g. /dev/ttyUSB0, or the path '
+    'printed by `python -m robel_dm.hardware.virtual`), or "virtual" for '
+    'an in-process simulated bus. Default: simulation.',
+  )
+  flags.DEFINE_string(
+    'robot_config', None, 'Robot configuration file (JSON) for --device_path.'
+  )
+  flags.DEFINE_enum(
+    'reset',
+    None,
+    ['scripted', 'move', 'manual'],
+    "With --device_path: how the robot is reset (default: the robot's).",
+  )
+  flags.DEFINE_enum(
+    'guide',
+    None,
+    ['show', 'interactive'],
+    "With --device_path, D'Claw Turn/Screw: the guide motor shows the goal, "
+    'or a person turns it to set the goal.',
+  )
+
+
+FLAGS = flags.FLAGS
+
+
 def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f'unexpected arguments: {argv[1:]}')
   try:
-    task_kwargs = parse_task_kwargs(_TASK_KWARGS.value)
+    task_kwargs = parse_task_kwargs(FLAGS.task_kwargs)
     results = evaluate(
-      _DOMAIN.value,
-      _TASK.value,
-      _EPISODES.value,
-      policy=_POLICY.value,
-      seed=_SEED.value,
+      FLAGS.domain,
+      FLAGS.task,
+      FLAGS.episodes,
+      policy=FLAGS.policy,
+      seed=FLAGS.seed,
       task_kwargs=task_kwargs,
-      log_every=max(1, _EPISODES.value // 10),
-      device_path=_DEVICE_PATH.value,
-      robot_config=_ROBOT_CONFIG.value,
-      reset=_RESET.value,
-      guide=_GUIDE.value,
+      log_every=max(1, FLAGS.episodes // 10),
+      device_path=FLAGS.device_path,
+      robot_config=FLAGS.robot_config,
+      reset=FLAGS.reset,
+      guide=FLAGS.guide,
     )
   except (ValueError, RuntimeError) as error:
     print(f'error: {error}', file=sys.stderr)
@@ -260,12 +276,13 @@ def main(argv):
     print('interrupted', file=sys.stderr)
     return 130
   print(format_table(results))
-  if _OUTPUT.value:
-    with open(_OUTPUT.value, 'w') as f:
+  if FLAGS.output:
+    with open(FLAGS.output, 'w') as f:
       json.dump(results, f, indent=2)
-    print(f'wrote {_OUTPUT.value}')
+    print(f'wrote {FLAGS.output}')
   return 0
 
 
 if __name__ == '__main__':
+  _define_flags()
   app.run(main)

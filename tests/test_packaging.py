@@ -22,7 +22,7 @@ def wheel(tmp_path_factory) -> pathlib.Path:
   source = tmp_path_factory.mktemp('source')
   for name in ('pyproject.toml', 'README.md'):
     shutil.copy(_REPO / name, source / name)
-  for name in ('robel_dm', 'xml'):
+  for name in ('robel_dm', 'xml', 'policies'):
     shutil.copytree(
       _REPO / name, source / name, ignore=shutil.ignore_patterns('__pycache__')
     )
@@ -41,6 +41,11 @@ def test_wheel_contains_every_model(wheel):
   names = set(zipfile.ZipFile(wheel).namelist())
   missing = [m for m in _MODELS if f'robel_dm/xml/{m}' not in names]
   assert _MODELS and not missing
+  shipped = [
+    f'robel_dm/baseline_policies/{path.name}'
+    for path in (_REPO / 'policies').iterdir()
+  ]
+  assert shipped and set(shipped) <= names
 
 
 def test_installed_wheel_loads_tasks_from_packaged_models(wheel, tmp_path):
@@ -55,6 +60,7 @@ def test_installed_wheel_loads_tasks_from_packaged_models(wheel, tmp_path):
     'from robel_dm import assets, suite\n'
     'assert pathlib.Path(robel_dm.__file__).is_relative_to(pathlib.Path('
     f'{str(target)!r})), robel_dm.__file__\n'
+    'print(assets.baselines_dir())\n'
     'print(assets.xml_dir())\n'
     "env = suite.load('dclaw', 'turn_fixed', task_kwargs={'valve': 'valve4'})\n"
     'env.reset()\n'
@@ -65,5 +71,8 @@ def test_installed_wheel_loads_tasks_from_packaged_models(wheel, tmp_path):
     [sys.executable, '-c', script],
     cwd=tmp_path, env=env, check=True, capture_output=True, text=True,
   )  # fmt: skip
-  xml_dir = pathlib.Path(result.stdout.strip().splitlines()[-1])
-  assert xml_dir == target / 'robel_dm' / 'xml'
+  *_, baselines_dir, xml_dir = result.stdout.strip().splitlines()
+  assert pathlib.Path(xml_dir) == target / 'robel_dm' / 'xml'
+  assert pathlib.Path(baselines_dir) == (
+    target / 'robel_dm' / 'baseline_policies'
+  )

@@ -1,0 +1,195 @@
+"""robel_dm tasks as Gymnasium environments, under ROBEL's names.
+
+    import gymnasium as gym
+    env = gym.make('robel_dm:robel_dm/DClawTurnFixed-v0')
+    obs, info = env.reset(seed=0)
+    action = env.action_space.sample()
+    obs, reward, terminated, truncated, info = env.step(action)
+
+(`import robel_dm.gym` registers the ids too; then the `robel_dm:` prefix
+can be left out.)
+
+The observation is ROBEL's flat agent vector (float32, in the order of the
+task's `agent_observation_keys`); the action a float32 Box in [-1, 1]. The
+signals never enter the observation: `info` holds `score`, `success`,
+`safety` (violations this step per counter) and `reward_terms`. A D'Kitty
+fall is `terminated`; the end of the time limit is `truncated`.
+
+Ids: ROBEL's (`DClawPoseFixed-v0` ... `DKittyWalkRandomDynamics-v0`) and,
+for Turn and Screw with the 4-prong valve, `DClawTurnFixedValve4-v0` etc.
+`gym.make(id, seed=..., task_kwargs=..., device_path=..., ...)` passes
+`suite.load`'s arguments through.
+"""
+
+from typing import Any
+
+import dm_env
+import gymnasium
+from gymnasium import spaces
+import numpy as np
+
+from robel_dm import suite
+from robel_dm.tasks import base
+
+NAMESPACE = 'robel_dm'
+_VARIANT_NAMES = {
+  'fixed': 'Fixed',
+  'random': 'Random',
+  'random_dynamics': 'RandomDynamics',
+}
+_DOMAIN_NAMES = {'dclaw': 'DClaw', 'dkitty': 'DKitty'}
+_VALVE4 = {'valve': 'valve4'}
+
+
+def env_name(domain: str, task: str, valve4: bool = False) -> str:
+  """ROBEL's name of a task: ('dclaw', 'turn_fixed') -> 'DClawTurnFixed'."""
+  family, variant = task.split('_', 1)
+  name = _DOMAIN_NAMES[domain] + family.capitalize() + _VARIANT_NAMES[variant]
+  return name + ('Valve4' if valve4 else '')
+
+
+def env_ids() -> dict[str, tuple[str, str, dict]]:
+  """Every registered id -> (domain, task, task_kwargs)."""
+  ids = {}
+  for domain, task in suite.ALL_TASKS:
+    ids[f'{NAMESPACE}/{env_name(domain, task)}-v0'] = (domain, task, {})
+    if task.startswith(('turn', 'screw')):
+      ids[f'{NAMESPACE}/{env_name(domain, task, valve4=True)}-v0'] = (
+        domain,
+        task,
+        dict(_VALVE4),
+      )
+  return ids
+
+
+class RobelEnv(gymnasium.Env):
+  """A robel_dm task with Gymnasium's API (see the module docstring)."""
+
+  metadata = {'render_modes': ['rgb_array']}
+
+  def __init__(
+    self,
+    domain: str,
+    task: str,
+    *,
+    task_kwargs: dict[str, Any] | None = None,
+    id_task_kwargs: dict[str, Any] | None = None,
+    render_mode: str | None = None,
+    render_size: tuple[int, int] = (240, 320),
+    **load_kwargs,
+  ):
+    """Loads the task.
+
+    Args:
+      domain: 'dclaw' or 'dkitty'.
+      task: a task of the domain, e.g. 'turn_fixed'.
+      task_kwargs: the task's arguments.
+      id_task_kwargs: arguments the registered id implies (the 4-prong
+        valve); `task_kwargs` are added to them.
+      render_mode: None or 'rgb_array'.
+      render_size: (height, width) of rendered frames, pixels.
+      **load_kwargs: further `suite.load` arguments (`seed`, `time_limit`,
+        `device_path`, `robot_config`, `reset`, `tracker`, `guide`,
+        `environment_kwargs`).
+    """
+    if render_mode not in (None, 'rgb_array'):
+      raise ValueError(f'render_mode must be None or rgb_array: {render_mode}')
+    self.domain, self.task_name = domain, task
+    self.task_kwargs = {**(id_task_kwargs or {}), **(task_kwargs or {})}
+    self._env = suite.load(
+      domain, task, task_kwargs=self.task_kwargs, **load_kwargs
+    )
+    self.render_mode = render_mode
+    self.metadata = {
+      **self.metadata,
+      'render_fps': round(1 / self._env.control_timestep()),
+    }
+    self._render_size = render_size
+    task_ = self._env.task
+    self._keys = task_.agent_observation_keys
+    spec = self._env.observation_spec()
+    size = sum(int(np.prod(spec[key].shape)) for key in self._keys)
+    self.observation_space = spaces.Box(
+      -np.inf, np.inf, shape=(size,), dtype=np.float32
+    )
+    action_spec = self._env.action_spec()
+    self.action_space = spaces.Box(
+      -1.0, 1.0, shape=action_spec.shape, dtype=np.float32
+    )
+    self._timestep: dm_env.TimeStep | None = None
+
+  @property
+  def robel_env(self) -> dm_env.Environment:
+    """The underlying robel_dm environment."""
+    return self._env
+
+  @property
+  def observation_keys(self) -> tuple[str, ...]:
+    """The observations in the agent vector, in order."""
+    return self._keys
+
+  def _observation(self, timestep: dm_env.TimeStep) -> np.ndarray:
+    observation = timestep.observation
+    return np.concatenate(
+      [np.ravel(observation[key]) for key in self._keys]
+    ).astype(np.float32)
+
+  def _info(self, timestep: dm_env.TimeStep) -> dict[str, Any]:
+    observation = timestep.observation
+    safety = observation[base.SAFETY]
+    return {
+      'score': float(observation[base.SCORE]),
+      'success': bool(observation[base.SUCCESS]),
+      'safety': dict(zip(base.SAFETY_FIELDS, safety.tolist(), strict=True)),
+      'reward_terms': self._env.task.reward_terms,
+    }
+
+  def reset(self, *, seed: int | None = None, options=None):
+    """Starts an episode; a seed reseeds the task's random state."""
+    del options
+    super().reset(seed=seed)
+    if seed is not None:
+      self._env.random_state.seed(seed)
+    self._timestep = self._env.reset()
+    return self._observation(self._timestep), self._info(self._timestep)
+
+  def step(self, action):
+    if self._timestep is None:
+      raise RuntimeError('call reset() before step()')
+    timestep = self._env.step(np.asarray(action, dtype=np.float64))
+    self._timestep = timestep
+    last = timestep.last()
+    terminated = last and timestep.discount == 0.0
+    truncated = last and not terminated
+    return (
+      self._observation(timestep),
+      float(timestep.reward),
+      terminated,
+      truncated,
+      self._info(timestep),
+    )
+
+  def render(self):
+    if self.render_mode != 'rgb_array':
+      return None
+    height, width = self._render_size
+    return self._env.physics.render(height=height, width=width)
+
+  def close(self):
+    self._env.close()
+
+
+def register_environments() -> None:
+  """Registers every task's id with Gymnasium (idempotent)."""
+  registry = gymnasium.envs.registry
+  for env_id, (domain, task, task_kwargs) in env_ids().items():
+    if env_id in registry:
+      continue
+    gymnasium.register(
+      id=env_id,
+      entry_point='robel_dm.gym:RobelEnv',
+      kwargs={'domain': domain, 'task': task, 'id_task_kwargs': task_kwargs},
+    )
+
+
+register_environments()

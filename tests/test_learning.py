@@ -1,0 +1,284 @@
+"""The learning path: Gymnasium adapter, training, numpy policies, evaluation.
+
+The adapter tests need Gymnasium; training and the numpy-equals-torch
+comparison need the `learn` extra (Stable-Baselines3 and torch).
+"""
+
+import json
+import pathlib
+
+import numpy as np
+import pytest
+
+gymnasium = pytest.importorskip('gymnasium')
+from gymnasium.utils import env_checker  # noqa: E402
+
+from robel_dm import evaluate, policies, suite  # noqa: E402
+from robel_dm import gym as robel_gym  # noqa: E402
+
+_IDS = robel_gym.env_ids()
+# ROBEL's flat observation sizes per family.
+_SIZES = {'pose': 27, 'turn': 21, 'screw': 21, 'stand': 61, 'orient': 53,
+          'walk': 52}  # fmt: skip
+
+
+def test_every_task_and_valve4_variant_has_robels_name():
+  names = {env_id.split('/')[1] for env_id in _IDS}
+  assert len(_IDS) == len(suite.ALL_TASKS) + 6
+  assert {
+    'DClawPoseFixed-v0',
+    'DClawTurnRandomDynamics-v0',
+    'DKittyWalkRandomDynamics-v0',
+    'DClawScrewFixedValve4-v0',
+  } <= names
+  assert all(env_id in gymnasium.envs.registry for env_id in _IDS)
+
+
+@pytest.mark.parametrize('env_id', sorted(_IDS))
+def test_adapter_conforms_and_keeps_signals_out_of_the_observation(env_id):
+  env = gymnasium.make(env_id)
+  try:
+    env_checker.check_env(env.unwrapped, skip_render_check=True)
+    domain, task, task_kwargs = _IDS[env_id]
+    assert env.unwrapped.task_kwargs == task_kwargs
+    family = task.split('_')[0]
+    assert env.observation_space.shape == (_SIZES[family],)
+    assert env.observation_space.dtype == np.float32
+    assert env.action_space.dtype == np.float32
+    assert (env.action_space.low == -1).all() and (
+      env.action_space.high == 1
+    ).all()
+    observation, info = env.reset(seed=3)
+    assert set(info) == {'score', 'success', 'safety', 'reward_terms'}
+    assert set(info['safety']) == {'position', 'velocity', 'current'}
+    unwrapped = env.unwrapped
+    # The observation is exactly ROBEL's agent vector, nothing else.
+    flat = unwrapped.robel_env.task.flatten_observation(
+      unwrapped._timestep.observation  # noqa: SLF001
+    )
+    np.testing.assert_array_equal(observation, flat.astype(np.float32))
+  finally:
+    env.close()
+
+
+def test_seeded_resets_reproduce():
+  env = gymnasium.make('robel_dm/DClawTurnRandom-v0')
+  first, _ = env.reset(seed=5)
+  env.step(env.action_space.sample())
+  again, _ = env.reset(seed=5)
+  other, _ = env.reset(seed=6)
+  np.testing.assert_array_equal(first, again)
+  assert not np.array_equal(first, other)
+  env.close()
+
+
+def test_time_limit_truncates_and_a_fall_terminates():
+  env = gymnasium.make('robel_dm/DClawPoseFixed-v0')
+  env.reset(seed=0)
+  steps, terminated, truncated = 0, False, False
+  while not (terminated or truncated):
+    _, _, terminated, truncated, _ = env.step(np.zeros(9, np.float32))
+    steps += 1
+  assert truncated and not terminated and steps == 80
+  env.close()
+  kitty = gymnasium.make('robel_dm/DKittyWalkFixed-v0')
+  kitty.reset(seed=0)
+  rng = np.random.default_rng(0)
+  for _ in range(160):
+    _, _, terminated, truncated, _ = kitty.step(
+      rng.uniform(-1, 1, 12).astype(np.float32)
+    )
+    if terminated or truncated:
+      break
+  assert terminated and not truncated  # Random actions topple it.
+  kitty.close()
+
+
+def test_suite_arguments_pass_through():
+  env = gymnasium.make(
+    'robel_dm/DClawTurnFixed-v0',
+    task_kwargs={'observation_keys': ('claw_qpos', 'target_error')},
+    time_limit=1.0,
+  )
+  observation, _ = env.reset(seed=0)
+  assert observation.shape == (10,)
+  steps = 0
+  while True:
+    _, _, terminated, truncated, _ = env.step(np.zeros(9, np.float32))
+    steps += 1
+    if terminated or truncated:
+      break
+  assert steps == 10
+  env.close()
+
+
+def test_async_vector_env_runs_the_tasks():
+  envs = gymnasium.vector.AsyncVectorEnv(
+    [lambda: gymnasium.make('robel_dm/DClawPoseFixed-v0')] * 2
+  )
+  try:
+    observations, _ = envs.reset(seed=[0, 1])
+    assert observations.shape == (2, 27)
+    observations, rewards, *_ = envs.step(envs.action_space.sample())
+    assert rewards.shape == (2,)
+  finally:
+    envs.close()
+
+
+# --- Policies without torch ---------------------------------------------------
+
+
+def _tiny_policy(tmp_path, task='pose_fixed', keys=None) -> pathlib.Path:
+  rng = np.random.default_rng(0)
+  keys = keys or ('qpos', 'last_action', 'qpos_error')
+  policy = policies.NumpyPolicy(
+    [rng.normal(size=(8, 27)), rng.normal(size=(9, 8))],
+    [rng.normal(size=8), rng.normal(size=9)],
+    'relu',
+    'tanh',
+    {
+      'domain': 'dclaw',
+      'task': task,
+      'task_kwargs': {},
+      'observation_keys': list(keys),
+      'algo': 'sac',
+    },  # fmt: skip
+  )
+  path = tmp_path / 'policy.npz'
+  policy.save(path)
+  return path
+
+
+def test_numpy_policy_round_trips_and_evaluates(tmp_path):
+  path = _tiny_policy(tmp_path)
+  policy = policies.load(path)
+  results = evaluate.evaluate('dclaw', 'pose_fixed', 2, policy=str(path))
+  assert results['episodes'] == 2
+  env = suite.load('dclaw', 'pose_fixed', seed=0)
+  timestep = env.reset()
+  action = policy(timestep)
+  assert action.shape == (9,) and np.all(np.abs(action) <= 1)
+  env.close()
+
+
+def test_policy_errors_are_clear(tmp_path):
+  with pytest.raises(policies.PolicyError, match='no policy file'):
+    evaluate.evaluate('dclaw', 'pose_fixed', 1, policy=str(tmp_path / 'x.npz'))
+  path = _tiny_policy(tmp_path)
+  with pytest.raises(policies.PolicyError, match='trained on dclaw/pose_fixed'):
+    evaluate.evaluate('dclaw', 'turn_fixed', 1, policy=str(path))
+  with pytest.raises(policies.PolicyError, match='no baseline policy'):
+    evaluate.evaluate('dclaw', 'pose_random_dynamics', 1, policy='baseline')
+  bad = tmp_path / 'bad.npz'
+  np.savez(bad, something=np.zeros(3))
+  with pytest.raises(policies.PolicyError, match='not a robel_dm policy'):
+    policies.load(bad)
+
+
+def test_saved_policy_runs_on_the_virtual_bus(tmp_path):
+  path = _tiny_policy(tmp_path)
+  results = evaluate.evaluate(
+    'dclaw', 'pose_fixed', 1, policy=str(path), device_path='virtual'
+  )
+  assert results['episodes'] == 1 and results['device_path'] == 'virtual'
+
+
+# --- Training (Stable-Baselines3) -------------------------------------------
+
+
+@pytest.fixture(scope='module')
+def trained_run(tmp_path_factory):
+  pytest.importorskip('stable_baselines3')
+  from robel_dm import train  # noqa: PLC0415
+
+  output = tmp_path_factory.mktemp('run')
+  history = train.train(
+    'dclaw',
+    'pose_fixed',
+    output,
+    steps=300,
+    eval_every=150,
+    eval_episodes=1,
+    hidden=(16, 16),
+    safety_penalty=0.5,
+    log=lambda line: None,
+  )
+  return output, history
+
+
+def test_training_writes_every_artefact(trained_run):
+  output, history = trained_run
+  for name in ('checkpoint.zip', 'replay_buffer.pkl', 'policy.npz',
+               'eval.jsonl', 'learning_curve.png', 'config.json',
+               'metadata.json'):  # fmt: skip
+    assert (output / name).is_file(), name
+  rows = [json.loads(line) for line in (output / 'eval.jsonl').open()]
+  assert (
+    [row['env_steps'] for row in rows]
+    == [150, 300]
+    == [row['env_steps'] for row in history]
+  )
+  assert set(rows[0]) >= {'env_steps', 'wall_time', 'success_rate',
+                          'mean_score', 'mean_return', 'safety'}  # fmt: skip
+  assert set(rows[0]['safety']) == {'position', 'velocity', 'current'}
+  config = json.loads((output / 'config.json').read_text())
+  assert config['safety_penalty'] == 0.5 and config['steps'] == 300
+
+
+def test_training_resumes_from_its_checkpoint(trained_run):
+  from robel_dm import train  # noqa: PLC0415
+
+  output, _ = trained_run
+  history = train.train(
+    'dclaw',
+    'pose_fixed',
+    output,
+    steps=450,
+    eval_every=150,
+    eval_episodes=1,
+    hidden=(16, 16),
+    resume=True,
+    log=lambda line: None,
+  )
+  assert [row['env_steps'] for row in history] == [150, 300, 450]
+  with pytest.raises(ValueError, match='is for dclaw/pose_fixed'):
+    train.train('dclaw', 'turn_fixed', output, steps=10, resume=True)
+
+
+def test_numpy_policy_equals_stable_baselines_prediction(trained_run):
+  from robel_dm import train  # noqa: PLC0415
+
+  output, _ = trained_run
+  model = train.load_model(output / 'checkpoint.zip')
+  numpy_policy = policies.load(output / 'policy.npz')
+  observations = np.random.default_rng(0).normal(size=(64, 27))
+  expected, _ = model.predict(
+    observations.astype(np.float32), deterministic=True
+  )
+  np.testing.assert_allclose(
+    numpy_policy.act(observations), expected, atol=1e-5
+  )
+
+
+def test_ppo_policy_exports_too(tmp_path):
+  pytest.importorskip('stable_baselines3')
+  from robel_dm import train  # noqa: PLC0415
+
+  train.train(
+    'dclaw', 'turn_fixed', tmp_path, algo='ppo', steps=128, eval_every=128,
+    eval_episodes=1, hidden=(8,), log=lambda line: None,
+  )  # fmt: skip
+  model = train.load_model(tmp_path / 'checkpoint.zip')
+  numpy_policy = policies.load(tmp_path / 'policy.npz')
+  observations = np.random.default_rng(1).normal(size=(32, 21))
+  expected, _ = model.predict(
+    observations.astype(np.float32), deterministic=True
+  )
+  np.testing.assert_allclose(
+    numpy_policy.act(observations), expected, atol=1e-5
+  )
+  # A Stable-Baselines3 checkpoint evaluates directly too.
+  results = evaluate.evaluate(
+    'dclaw', 'turn_fixed', 1, policy=str(tmp_path / 'checkpoint.zip')
+  )
+  assert results['episodes'] == 1
