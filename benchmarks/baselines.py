@@ -22,7 +22,7 @@ import shutil
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 RUNS_DIR = ROOT / 'runs' / 'baselines'
-DOCS = ROOT / 'docs' / 'baselines.md'
+DOCS = ROOT / 'docs/baselines.md'
 CURVES_DIR = ROOT / 'docs' / 'baselines'
 POLICIES_DIR = ROOT / 'policies'
 EVAL_EVERY = 5_000

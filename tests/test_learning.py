@@ -176,6 +176,7 @@ def test_policy_errors_are_clear(tmp_path):
 
 
 def test_saved_policy_runs_on_the_virtual_bus(tmp_path):
+  pytest.importorskip('dynamixel_sdk')  # The hardware extra.
   path = _tiny_policy(tmp_path)
   results = evaluate.evaluate(
     'dclaw', 'pose_fixed', 1, policy=str(path), device_path='virtual'

@@ -50,10 +50,10 @@ def _text_files():
 
 
 def _resolves(citing: pathlib.Path, reference: str) -> bool:
-  """Whether `reference` is a path to a file of the repository, relative to
-  the citing file or to the repository's root."""
+  """Whether `reference` is a path to a file (or folder) of the repository,
+  relative to the citing file or to the repository's root."""
   reference = reference.rstrip('.,:;')
-  return any((base / reference).is_file() for base in (citing.parent, _ROOT))
+  return any((base / reference).exists() for base in (citing.parent, _ROOT))
 
 
 def test_every_cited_document_is_in_the_repository():

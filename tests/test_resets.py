@@ -8,6 +8,10 @@ from robel_dm.hardware import config as config_lib
 from robel_dm.hardware import control_table as table
 from robel_dm.hardware import resets, sim_robot, tracking
 
+# Every test here runs on the virtual bus: skipped without the hardware
+# extra.
+pytest.importorskip('dynamixel_sdk')
+
 
 def _torque(bus):
   return {servo.motor_id: servo.torque_enabled for servo in bus.servos}

@@ -500,6 +500,7 @@ def _tracked_virtual_kitty(emit=None):
     emit: maps the simulated torso (position, quaternion) to what the
       tracker source reports; identity if None.
   """
+  pytest.importorskip('dynamixel_sdk')  # The hardware extra.
   env = suite.load('dkitty', 'stand_fixed', seed=0, device_path='virtual')
   simulation = env.virtual_bus.driver
 
