@@ -1,0 +1,60 @@
+"""Episodes as videos: one frame per control step, from a named camera."""
+
+import numpy as np
+import pytest
+
+from robel_dm import policies, suite, video
+
+imageio_ffmpeg = pytest.importorskip('imageio_ffmpeg')
+
+
+def _frames_in(path) -> int:
+  reader = imageio_ffmpeg.read_frames(str(path))
+  meta = next(reader)
+  count = sum(1 for _ in reader)
+  assert meta['size'] == (320, 240)
+  return count
+
+
+def test_an_episode_becomes_a_video_with_a_frame_per_step(tmp_path):
+  env = suite.load('dclaw', 'turn_fixed', seed=0)
+  policy = policies.make_policy('zero', env, seed=0)
+  path = tmp_path / 'turn.mp4'
+  timestep, frames = video.record_episode(
+    env, policy, path, camera='front', size=(240, 320)
+  )
+  assert timestep.last()
+  assert frames == env.task.episode_steps + 1
+  assert _frames_in(path) == frames
+  env.close()
+
+
+def test_the_goal_marker_is_in_the_picture():
+  # The turn task's goal marker is green: a fixed-goal frame has green
+  # pixels, and hiding the marker removes them.
+  env = suite.load('dclaw', 'turn_fixed', seed=0)
+  env.reset()
+
+  def green_pixels():
+    frame = video.render(env, 'closeup', (240, 320)).astype(int)
+    red, green, blue = frame[..., 0], frame[..., 1], frame[..., 2]
+    return int(((green > 150) & (red < 100) & (blue < 100)).sum())
+
+  shown = green_pixels()
+  goal = env.task.arena.goal_body.full_identifier
+  body = env.physics.model.name2id(goal, 'body')
+  mocap = env.physics.model.body_mocapid[body]
+  env.physics.data.mocap_pos[mocap] = (0.0, 0.0, -5.0)  # Out of view.
+  env.physics.forward()
+  assert shown > 20 and green_pixels() < shown / 10
+  env.close()
+
+
+def test_unknown_cameras_are_named():
+  env = suite.load('dkitty', 'walk_fixed', seed=0)
+  env.reset()
+  with pytest.raises(video.VideoError, match='overview'):
+    video.check_camera(env, 'nope')
+  assert 'overview' in video.camera_names(env)
+  assert isinstance(video.render(env, 'overview', (64, 64)), np.ndarray)
+  env.close()
