@@ -102,6 +102,12 @@ def load(
     raise _unknown('domain', domain, registry.DOMAINS)
   tasks = registry.DOMAINS[domain]
   if task not in tasks:
+    owners = [d for d, ts in registry.DOMAINS.items() if task in ts]
+    if owners:
+      raise ValueError(
+        f'unknown {domain} task {task!r}: that task belongs to {owners[0]} '
+        f"(suite.load({owners[0]!r}, {task!r}))"
+      )
     raise _unknown(f'{domain} task', task, tasks)
   try:
     task_instance = tasks[task](**(task_kwargs or {}))
