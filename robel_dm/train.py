@@ -282,6 +282,11 @@ def train(
   else:
     model = build_model(algo, env, seed, hidden, steps)
     log_path.write_text('')
+  # Stable-Baselines3's own logger would make a folder in /tmp per learn()
+  # call; the evaluation log above is the record of the run.
+  from stable_baselines3.common.logger import Logger  # noqa: PLC0415
+
+  model.set_logger(Logger(folder=None, output_formats=[]))
   (output / CONFIG).write_text(
     json.dumps(
       {
