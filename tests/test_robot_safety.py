@@ -37,6 +37,15 @@ def short_timeouts(monkeypatch):
   monkeypatch.setattr(port_handler, 'LATENCY_TIMER', 2)
 
 
+@pytest.fixture
+def claw():
+  """D'Claw Pose on an in-process virtual bus, reset; closed afterwards."""
+  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  env.reset()
+  yield env
+  env.close()
+
+
 def _wait_for_line(stream, timeout: float) -> str:
   ready, _, _ = select.select([stream], [], [], timeout)
   assert ready, 'no output in time'
@@ -137,7 +146,8 @@ def test_garbage_collected_environment_releases_its_motors(standalone_bus):
   child = _child(
     device_path,
     """
-        def run():
+    import dynamixel_sdk as sdk
+    def run():
       env = suite.load('dclaw', 'turn_fixed', device_path=DEVICE,
                        reset='move')
       env.reset()
@@ -210,25 +220,20 @@ def test_every_robot_is_released_whatever_another_release_raises(monkeypatch):
 
 
 def test_after_a_fault_the_environment_refuses_to_step_until_reset(
-  short_timeouts,
+  short_timeouts, claw
 ):
-  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
-  bus = env.virtual_bus
-  try:
-    env.reset()
-    bus.faults.set_absent(31)
-    with pytest.raises(dynamixel.MissingMotorError):
-      env.step(np.zeros(9))
-    bus.faults.clear()  # The motor is back, but the robot is limp.
-    with pytest.raises(dynamixel.RobotReleasedError, match='reset'):
-      env.step(np.zeros(9))
-    # Released while 31 was away (a vanished motor keeps its torque).
-    assert not any(s.torque_enabled for s in bus.servos if s.motor_id != 31)
-    env.reset()  # Checks the bus and re-enables the motors.
-    assert env.step(np.zeros(9)).mid()
-    assert all(bus.servo(i).torque_enabled for i in _CLAW_IDS)
-  finally:
-    env.close()
+  env, bus = claw, claw.virtual_bus
+  bus.faults.set_absent(31)
+  with pytest.raises(dynamixel.MissingMotorError):
+    env.step(np.zeros(9))
+  bus.faults.clear()  # The motor is back, but the robot is limp.
+  with pytest.raises(dynamixel.RobotReleasedError, match='reset'):
+    env.step(np.zeros(9))
+  # Released while 31 was away (a vanished motor keeps its torque).
+  assert not any(s.torque_enabled for s in bus.servos if s.motor_id != 31)
+  env.reset()  # Checks the bus and re-enables the motors.
+  assert env.step(np.zeros(9)).mid()
+  assert all(bus.servo(i).torque_enabled for i in _CLAW_IDS)
 
 
 def test_over_current_stops_the_episode_naming_motor_and_current():
@@ -250,92 +255,65 @@ def test_over_current_stops_the_episode_naming_motor_and_current():
     env.close()
 
 
-def test_a_lost_goal_write_is_noticed_and_sent_again(caplog):
-  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
-  bus = env.virtual_bus
-  try:
-    env.reset()
+def test_a_lost_goal_write_is_noticed_and_sent_again(caplog, claw):
+  env, bus = claw, claw.virtual_bus
+  env.step(np.full(9, 0.1))
+  bus.faults.lose_next_write(22)
+  with caplog.at_level(logging.WARNING):
+    env.step(np.full(9, -0.1))  # A new goal for every motor.
+  assert 'goal write lost on motors [22]' in caplog.text
+  env.robot.client.ping(22)  # The resent write has no reply: sync.
+  client = env.robot.client
+  sent = client._sent_goals[client.motor_ids.index(22)]  # noqa: SLF001
+  assert bus.servo(22).goal_position == sent
+
+
+def test_goal_writes_lost_twice_in_a_row_stop_with_an_error(claw):
+  env, bus = claw, claw.virtual_bus
+  bus.faults.lose_next_write(22, count=3)  # The step's, the resent, next.
+  with pytest.raises(dynamixel.DynamixelError, match=r'motors \[22\] did not'):
     env.step(np.full(9, 0.1))
-    bus.faults.lose_next_write(22)
-    with caplog.at_level(logging.WARNING):
-      env.step(np.full(9, -0.1))  # A new goal for every motor.
-    assert 'goal write lost on motors [22]' in caplog.text
-    env.robot.client.ping(22)  # The resent write has no reply: sync.
-    client = env.robot.client
-    sent = client._sent_goals[client.motor_ids.index(22)]  # noqa: SLF001
-    assert bus.servo(22).goal_position == sent
-  finally:
-    env.close()
-
-
-def test_goal_writes_lost_twice_in_a_row_stop_with_an_error():
-  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
-  bus = env.virtual_bus
-  try:
-    env.reset()
-    bus.faults.lose_next_write(22, count=3)  # The step's, the resent, next.
-    with pytest.raises(
-      dynamixel.DynamixelError, match=r'motors \[22\] did not'
-    ):
-      env.step(np.full(9, 0.1))
-      env.step(np.full(9, -0.1))
-    assert not any(s.torque_enabled for s in bus.servos)
-  finally:
-    env.close()
+    env.step(np.full(9, -0.1))
+  assert not any(s.torque_enabled for s in bus.servos)
 
 
 # --- Errors name what failed --------------------------------------------------
 
 
-def test_corrupted_replies_blame_the_motor_that_sent_them(short_timeouts):
-  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
-  bus = env.virtual_bus
-  try:
-    env.reset()
-    bus.faults.corrupt_next(22, count=3)  # Every attempt of one read.
-    with pytest.raises(dynamixel.DynamixelError) as error:
-      env.step(np.zeros(9))
-    assert error.value.motor_ids == (22,)
-    assert 'motor 22 answered with corrupted replies' in str(error.value)
-    assert not isinstance(error.value, dynamixel.MissingMotorError)
-  finally:
-    env.close()
-
-
-def test_a_motor_with_a_bad_checksum_is_not_called_silent(short_timeouts):
-  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
-  bus = env.virtual_bus
-  try:
-    env.reset()
-    bus.faults.corrupt_next(31, count=1000)
-    with pytest.raises(dynamixel.DynamixelError, match='corrupted') as error:
-      env.step(np.zeros(9))
-    assert error.value.motor_ids == (31,)
-    assert 'stopped answering' not in str(error.value)
-  finally:
-    env.close()
-
-
-def test_a_silent_bus_is_named_as_such_after_one_ping_per_motor():
-  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
-  bus = env.virtual_bus
-  try:
-    env.reset()
+def test_corrupted_replies_blame_the_motor_that_sent_them(short_timeouts, claw):
+  env, bus = claw, claw.virtual_bus
+  bus.faults.corrupt_next(22, count=3)  # Every attempt of one read.
+  with pytest.raises(dynamixel.DynamixelError) as error:
     env.step(np.zeros(9))
-    for servo in bus.servos:
-      bus.faults.set_absent(servo.motor_id)
-    packets = bus.stats['packets']
-    with pytest.raises(dynamixel.MissingMotorError) as error:
-      env.step(np.zeros(9))
-    assert 'no motor answers on' in str(error.value)
-    assert 'check power and cable' in str(error.value)
-    assert sorted(error.value.motor_ids) == _CLAW_IDS
-    # Bounded work: the goal write, the read and its 2 retries, one ping per
-    # motor, and the broadcast release (no per-motor retries on a silent
-    # bus, which took seconds).
-    assert bus.stats['packets'] - packets <= 1 + 3 + len(_CLAW_IDS) + 1
-  finally:
-    env.close()
+  assert error.value.motor_ids == (22,)
+  assert 'motor 22 answered with corrupted replies' in str(error.value)
+  assert not isinstance(error.value, dynamixel.MissingMotorError)
+
+
+def test_a_motor_with_a_bad_checksum_is_not_called_silent(short_timeouts, claw):
+  env, bus = claw, claw.virtual_bus
+  bus.faults.corrupt_next(31, count=1000)
+  with pytest.raises(dynamixel.DynamixelError, match='corrupted') as error:
+    env.step(np.zeros(9))
+  assert error.value.motor_ids == (31,)
+  assert 'stopped answering' not in str(error.value)
+
+
+def test_a_silent_bus_is_named_as_such_after_one_ping_per_motor(claw):
+  env, bus = claw, claw.virtual_bus
+  env.step(np.zeros(9))
+  for servo in bus.servos:
+    bus.faults.set_absent(servo.motor_id)
+  packets = bus.stats['packets']
+  with pytest.raises(dynamixel.MissingMotorError) as error:
+    env.step(np.zeros(9))
+  assert 'no motor answers on' in str(error.value)
+  assert 'check power and cable' in str(error.value)
+  assert sorted(error.value.motor_ids) == _CLAW_IDS
+  # Bounded work: the goal write, the in-process clock's sync ping, the
+  # read and its 2 retries, one ping per motor, and the broadcast release
+  # (no per-motor retries on a silent bus, which took seconds).
+  assert bus.stats['packets'] - packets <= 1 + 1 + 3 + len(_CLAW_IDS) + 1
 
 
 # --- One owner per bus --------------------------------------------------------
