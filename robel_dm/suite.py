@@ -54,19 +54,31 @@ def _unknown(kind: str, name: str, known) -> ValueError:
   return ValueError(f'unknown {kind} {name!r}; expected one of {known}.{hint}')
 
 
+def _one_of(value, alias, name: str):
+  """`value`, or dm_control.suite's `<name>_name` keyword in its place."""
+  if value is not None and alias is not None and value != alias:
+    raise ValueError(f'both {name}={value!r} and {name}_name={alias!r} given')
+  if value is None and alias is None:
+    raise ValueError(f'{name} is required')
+  return value if value is not None else alias
+
+
 def load(
-  domain: str,
-  task: str,
+  domain: str | None = None,
+  task: str | None = None,
+  task_kwargs: dict[str, Any] | None = None,
+  environment_kwargs: dict[str, Any] | None = None,
   *,
   seed: int | None = None,
   time_limit: float | None = None,
-  task_kwargs: dict[str, Any] | None = None,
-  environment_kwargs: dict[str, Any] | None = None,
   device_path: str | None = None,
   robot_config=None,
   reset: str | None = None,
   tracker=None,
   guide: str | None = None,
+  domain_name: str | None = None,
+  task_name: str | None = None,
+  visualize_reward: bool = False,
 ) -> Environment:
   """Builds a task's environment.
 
@@ -91,6 +103,10 @@ def load(
     guide: with `device_path`, for D'Claw Turn/Screw: ROBEL's guide motor
       'show's the goal, or ('interactive') a person turns it to set the
       goal.
+    domain_name: `dm_control.suite.load`'s name for `domain`.
+    task_name: `dm_control.suite.load`'s name for `task`.
+    visualize_reward: accepted for `dm_control.suite` code; robel_dm shows
+      goal markers instead and draws no reward colours.
 
   Returns:
     A `dm_env.Environment` (a `composer.Environment`).
@@ -98,6 +114,9 @@ def load(
   Raises:
     ValueError: for an unknown domain, task or task argument.
   """
+  del visualize_reward  # See the docstring.
+  domain = _one_of(domain, domain_name, 'domain')
+  task = _one_of(task, task_name, 'task')
   if domain not in registry.DOMAINS:
     raise _unknown('domain', domain, registry.DOMAINS)
   tasks = registry.DOMAINS[domain]
@@ -106,7 +125,7 @@ def load(
     if owners:
       raise ValueError(
         f'unknown {domain} task {task!r}: that task belongs to {owners[0]} '
-        f"(suite.load({owners[0]!r}, {task!r}))"
+        f'(suite.load({owners[0]!r}, {task!r}))'
       )
     raise _unknown(f'{domain} task', task, tasks)
   try:

@@ -273,3 +273,21 @@ def test_unknown_observation_key_raises_value_error(task_id):
 def test_unknown_action_bounds_mode_raises_value_error(task):
   with pytest.raises(ValueError, match='action_bounds'):
     suite.load(*task, task_kwargs={'action_bounds': 'wrap'})
+
+
+def test_dm_control_suite_keywords_work():
+  env = suite.load(
+    domain_name='dclaw',
+    task_name='turn_fixed',
+    task_kwargs={'valve': 'valve4'},
+    environment_kwargs={'strip_singleton_obs_buffer_dim': True},
+    visualize_reward=True,
+  )
+  assert env.reset().first()
+  env.close()
+  positional = suite.load('dclaw', 'pose_fixed', {'action_bounds': 'clip'})
+  positional.close()
+  with pytest.raises(ValueError, match='both domain'):
+    suite.load('dclaw', 'pose_fixed', domain_name='dkitty')
+  with pytest.raises(ValueError, match='task is required'):
+    suite.load('dclaw')
