@@ -19,8 +19,8 @@ from typing import Any
 
 import numpy as np
 
-# z of a two-sided 95% normal interval.
-_Z95 = 1.96
+from robel_dm import provenance
+
 PANELS = (
   ('success', 'success rate'),
   ('mean_score', 'mean score'),
@@ -57,10 +57,8 @@ def episode_values(result: dict[str, Any], panel: str) -> np.ndarray:
 
 def mean_and_interval(values: np.ndarray) -> tuple[float, float]:
   """The mean and the half-width of its 95% interval."""
-  if not len(values):
-    return math.nan, math.nan
-  spread = np.std(values, ddof=1) if len(values) > 1 else 0.0
-  return float(np.mean(values)), float(_Z95 * spread / math.sqrt(len(values)))
+  result = provenance.spread(values)
+  return result['mean'], result['ci95'][1] - result['mean']
 
 
 def plot(
