@@ -11,14 +11,16 @@ episode and the control steps per second.
 
 import json
 import math
+import os
 import sys
 import time
 from typing import Any
 
 from absl import app, flags, logging
 import numpy as np
+import tqdm
 
-from robel_dm import policies, suite
+from robel_dm import policies, provenance, suite
 from robel_dm.tasks import base
 
 
@@ -54,6 +56,73 @@ def parse_task_kwargs(text: str) -> dict[str, Any]:
   return kwargs
 
 
+def run_episode(
+  env, act: policies.Policy, episode_seed: int | None
+) -> tuple[dict[str, Any], int, float]:
+  """Runs one episode from a seeded reset.
+
+  Returns:
+    Its record, its number of steps and the seconds spent in `env.step`.
+  """
+  if episode_seed is not None:
+    env.random_state.seed(episode_seed)
+  timestep = env.reset()
+  episode_return, scores = 0.0, []
+  safety = np.zeros(len(base.SAFETY_FIELDS), dtype=np.int64)
+  step_seconds = 0.0
+  while not timestep.last():
+    action = act(timestep)
+    start = time.perf_counter()
+    timestep = env.step(action)
+    step_seconds += time.perf_counter() - start
+    episode_return += timestep.reward
+    scores.append(float(timestep.observation[base.SCORE]))
+    safety += timestep.observation[base.SAFETY]
+  record = {
+    'seed': episode_seed,
+    'return': episode_return,
+    'mean_score': float(np.mean(scores)),
+    'final_score': scores[-1],
+    'success': bool(timestep.observation[base.SUCCESS]),
+    'steps': len(scores),
+    'safety': dict(zip(base.SAFETY_FIELDS, safety.tolist(), strict=True)),
+  }
+  return record, len(scores), step_seconds
+
+
+def summarize(
+  records: list[dict[str, Any]], head: dict[str, Any], steps_per_second
+) -> dict[str, Any]:
+  """The result of a run: `head`, the means and spreads, the records."""
+
+  def values(key):
+    return [r[key] for r in records]
+
+  return {
+    **head,
+    'episodes': len(records),
+    'success_rate': float(np.mean(values('success'))) if records else math.nan,
+    'mean_return': float(np.mean(values('return'))) if records else math.nan,
+    'mean_score': float(np.mean(values('mean_score'))) if records else math.nan,
+    'mean_final_score': float(np.mean(values('final_score')))
+    if records
+    else math.nan,
+    'safety': {
+      field: float(np.mean([r['safety'][field] for r in records]))
+      if records
+      else math.nan
+      for field in base.SAFETY_FIELDS
+    },
+    'spread': {
+      'success': provenance.spread(values('success')),
+      'return': provenance.spread(values('return')),
+      'mean_score': provenance.spread(values('mean_score')),
+    },
+    'steps_per_second': steps_per_second,
+    'records': records,
+  }
+
+
 def evaluate(
   domain: str,
   task: str,
@@ -66,8 +135,12 @@ def evaluate(
   robot_config: str | None = None,
   reset: str | None = None,
   guide: str | None = None,
+  on_episode=None,
 ) -> dict[str, Any]:
   """Runs `episodes` episodes and returns the metrics.
+
+  Episode i starts from a reset seeded with `seed + i` (the policy's own
+  randomness from `seed`), so any episode can be reproduced on its own.
 
   Args:
     domain: task domain, e.g. 'dclaw'.
@@ -76,16 +149,20 @@ def evaluate(
     policy: a name or path (see `policies.make_policy`), or a callable from
       timestep to action (a `policies.NumpyPolicy` is checked against the
       task).
-    seed: seed of the environment and the policy.
+    seed: seed of the episodes and the policy; None draws fresh ones.
     task_kwargs: task arguments for `suite.load`.
     log_every: log progress every this many episodes (0: never).
     device_path: run on a robot (see `suite.load`); None simulates.
     robot_config: robot configuration file for `device_path`.
     reset: reset procedure for `device_path` (see `suite.load`).
     guide: guide motor mode for `device_path` (see `suite.load`).
+    on_episode: called with the results so far after every episode (to
+      print rows and save partial results as they come).
 
   Returns:
-    A JSON-serializable dict of per-episode records and summary metrics.
+    A JSON-serializable dict of per-episode records, summary metrics,
+    spreads and provenance (software versions, git revision, time,
+    machine).
 
   Raises:
     ValueError: for bad arguments (unknown task or policy, episodes < 1).
@@ -102,6 +179,21 @@ def evaluate(
     reset=reset,
     guide=guide,
   )
+  head = {
+    'domain': domain,
+    'task': task,
+    'task_kwargs': task_kwargs or {},
+    'policy': policy if isinstance(policy, str) else repr(policy),
+    'seed': seed,
+    'device_path': device_path,
+    'provenance': provenance.describe(),
+  }
+  records, total_steps, step_seconds = [], 0, 0.0
+
+  def results():
+    rate = total_steps / step_seconds if step_seconds else math.nan
+    return summarize(records, head, rate)
+
   try:
     if callable(policy):
       act = policy
@@ -109,32 +201,14 @@ def evaluate(
         policy.check_task(domain, task, task_kwargs)
     else:
       act = policies.make_policy(policy, env, seed, domain, task, task_kwargs)
-    records = []
-    step_seconds = 0.0
-    total_steps = 0
     for episode in range(episodes):
-      timestep = env.reset()
-      episode_return, scores = 0.0, []
-      safety = np.zeros(len(base.SAFETY_FIELDS), dtype=np.int64)
-      while not timestep.last():
-        action = act(timestep)
-        start = time.perf_counter()
-        timestep = env.step(action)
-        step_seconds += time.perf_counter() - start
-        total_steps += 1
-        episode_return += timestep.reward
-        scores.append(float(timestep.observation[base.SCORE]))
-        safety += timestep.observation[base.SAFETY]
-      records.append(
-        {
-          'return': episode_return,
-          'mean_score': float(np.mean(scores)),
-          'final_score': scores[-1],
-          'success': bool(timestep.observation[base.SUCCESS]),
-          'steps': len(scores),
-          'safety': dict(zip(base.SAFETY_FIELDS, safety.tolist(), strict=True)),
-        }
-      )
+      episode_seed = None if seed is None else seed + episode
+      record, steps, seconds = run_episode(env, act, episode_seed)
+      records.append(record)
+      total_steps += steps
+      step_seconds += seconds
+      if on_episode is not None:
+        on_episode(results())
       if log_every and (episode + 1) % log_every == 0:
         logging.info(
           '%s/%s: %d/%d episodes, success so far %.2f',
@@ -146,66 +220,115 @@ def evaluate(
         )
   finally:
     env.close()
-  return {
-    'domain': domain,
-    'task': task,
-    'task_kwargs': task_kwargs or {},
-    'policy': policy if isinstance(policy, str) else repr(policy),
-    'seed': seed,
-    'episodes': episodes,
-    'success_rate': float(np.mean([r['success'] for r in records])),
-    'mean_return': float(np.mean([r['return'] for r in records])),
-    'mean_score': float(np.mean([r['mean_score'] for r in records])),
-    'mean_final_score': float(np.mean([r['final_score'] for r in records])),
-    'safety': {
-      field: float(np.mean([r['safety'][field] for r in records]))
-      for field in base.SAFETY_FIELDS
-    },
-    'steps_per_second': total_steps / step_seconds
-    if step_seconds
-    else math.nan,
-    'device_path': device_path,
-    'records': records,
-  }
+  return results()
+
+
+_ROW_HEADER = (
+  f'{"episode":>7} {"seed":>6} {"return":>10} {"mean score":>10} '
+  f'{"success":>7} {"pos/vel/cur violations":>22}'
+)
+
+
+def format_row(index: int, record: dict[str, Any]) -> str:
+  """One episode's line of the table."""
+  safety = '/'.join(str(v) for v in record['safety'].values())
+  return (
+    f'{index:>7} {record["seed"]!s:>6} {record["return"]:>10.2f} '
+    f'{record["mean_score"]:>10.3f} '
+    f'{"yes" if record["success"] else "no":>7} {safety:>22}'
+  )
+
+
+def format_header(results: dict[str, Any]) -> str:
+  return (
+    f'{results["domain"]}/{results["task"]}  policy={results["policy"]}  '
+    f'seed={results["seed"]}  task_kwargs={results["task_kwargs"]}\n'
+    f'{_ROW_HEADER}\n{"-" * len(_ROW_HEADER)}'
+  )
+
+
+def format_summary(results: dict[str, Any]) -> str:
+  """The summary lines under the episode rows."""
+  spread = results['spread']
+  safety = results['safety']
+  return '\n'.join(
+    [
+      '-' * len(_ROW_HEADER),
+      f'success rate      {results["success_rate"]:.2f} '
+      f'({results["episodes"]} episodes; 95% interval '
+      f'{spread["success"]["ci95"][0]:.2f}..{spread["success"]["ci95"][1]:.2f})',
+      f'mean return       {results["mean_return"]:.2f} '
+      f'(std {spread["return"]["std"]:.2f})',
+      f'mean score        {results["mean_score"]:.3f} '
+      f'(std {spread["mean_score"]["std"]:.3f})',
+      'safety / episode  '
+      + ', '.join(f'{field} {value:.2f}' for field, value in safety.items()),
+      f'steps per second  {results["steps_per_second"]:.0f}',
+    ]
+  )
 
 
 def format_table(results: dict[str, Any]) -> str:
   """Formats the results as a plain-text table."""
-  header = (
-    f'{"episode":>7} {"return":>10} {"mean score":>10} {"success":>7} '
-    f'{"pos/vel/cur violations":>22}'
-  )
-  lines = [
-    f'{results["domain"]}/{results["task"]}  policy={results["policy"]}  '
-    f'seed={results["seed"]}  task_kwargs={results["task_kwargs"]}',
-    header,
-    '-' * len(header),
-  ]
-  for i, record in enumerate(results['records']):
-    safety = '/'.join(str(v) for v in record['safety'].values())
-    lines.append(
-      f'{i:>7} {record["return"]:>10.2f} {record["mean_score"]:>10.3f} '
-      f'{"yes" if record["success"] else "no":>7} {safety:>22}'
-    )
-  safety = results['safety']
-  lines += [
-    '-' * len(header),
-    f'success rate      {results["success_rate"]:.2f} '
-    f'({results["episodes"]} episodes)',
-    f'mean return       {results["mean_return"]:.2f}',
-    f'mean score        {results["mean_score"]:.3f}',
-    'safety / episode  '
-    + ', '.join(f'{field} {value:.2f}' for field, value in safety.items()),
-    f'steps per second  {results["steps_per_second"]:.0f}',
-  ]
-  return '\n'.join(lines)
+  rows = [format_row(i, r) for i, r in enumerate(results['records'])]
+  return '\n'.join([format_header(results), *rows, format_summary(results)])
+
+
+def select_tasks(domain: str, task: str) -> list[tuple[str, str]]:
+  """The (domain, task) pairs that --domain and --task name ('all' for
+  every domain or every task of the domain(s)).
+
+  Raises:
+    ValueError: for unknown names (with the suite's suggestions).
+  """
+  domains = list(suite.TASKS_BY_DOMAIN) if domain == 'all' else [domain]
+  selected = []
+  for name in domains:
+    if name not in suite.TASKS_BY_DOMAIN:
+      suite.load(name, task)  # Raises, naming the known domains.
+    tasks = suite.TASKS_BY_DOMAIN[name]
+    if task == 'all':
+      selected += [(name, t) for t in tasks]
+    elif task in tasks or domain != 'all':
+      selected.append((name, task))
+  if not selected:
+    raise ValueError(f'no domain has a task {task!r}')
+  for name, task_name in selected:
+    if task_name not in suite.TASKS_BY_DOMAIN[name]:
+      suite.load(name, task_name)  # Raises with the suggestions.
+  return selected
+
+
+def check_output(path: str | None) -> None:
+  """Fails before the first episode if the results cannot be written."""
+  if not path:
+    return
+  directory = os.path.dirname(os.path.abspath(path))
+  if not os.path.isdir(directory):
+    raise ValueError(f'--output: no folder {directory}')
+  if not os.access(directory, os.W_OK) or (
+    os.path.exists(path) and not os.access(path, os.W_OK)
+  ):
+    raise ValueError(f'--output: cannot write {path}')
+
+
+def write_json(path: str, data) -> None:
+  """Writes `data` atomically: a reader (or an interruption) never sees a
+  half-written file."""
+  temporary = f'{path}.partial'
+  with open(temporary, 'w') as file:
+    json.dump(data, file, indent=2)
+  os.replace(temporary, path)
 
 
 def _define_flags() -> None:
   """The command line's flags (defined only when run as a program, so that
   importing this module defines none)."""
-  flags.DEFINE_string('domain', 'dclaw', 'Task domain.')
-  flags.DEFINE_string('task', 'pose_fixed', 'Task name in the domain.')
+  flags.DEFINE_string('domain', 'dclaw', "Task domain, or 'all'.")
+  flags.DEFINE_string(
+    'task', 'pose_fixed', "Task name in the domain, or 'all' (a sweep)."
+  )
+  flags.DEFINE_bool('list', False, 'List the tasks and exit.')
   flags.DEFINE_integer('episodes', 10, 'Number of episodes.', lower_bound=1)
   flags.DEFINE_integer('seed', 0, 'Seed of the environment and policy.')
   flags.DEFINE_string(
@@ -250,35 +373,68 @@ def _define_flags() -> None:
 FLAGS = flags.FLAGS
 
 
+def _list_tasks() -> str:
+  return '\n'.join(
+    f'{domain:<7} {", ".join(tasks)}'
+    for domain, tasks in suite.TASKS_BY_DOMAIN.items()
+  )
+
+
 def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f'unexpected arguments: {argv[1:]}')
+  if FLAGS.list:
+    print(_list_tasks())
+    return 0
+  finished: list[dict[str, Any]] = []
   try:
     task_kwargs = parse_task_kwargs(FLAGS.task_kwargs)
-    results = evaluate(
-      FLAGS.domain,
-      FLAGS.task,
-      FLAGS.episodes,
-      policy=FLAGS.policy,
-      seed=FLAGS.seed,
-      task_kwargs=task_kwargs,
-      log_every=max(1, FLAGS.episodes // 10),
-      device_path=FLAGS.device_path,
-      robot_config=FLAGS.robot_config,
-      reset=FLAGS.reset,
-      guide=FLAGS.guide,
-    )
+    tasks = select_tasks(FLAGS.domain, FLAGS.task)
+    check_output(FLAGS.output)
+    sweep = len(tasks) > 1
+    progress = tqdm.tqdm(
+      total=len(tasks) * FLAGS.episodes, unit='episode', file=sys.stderr,
+      disable=not sys.stderr.isatty(),
+    )  # fmt: skip
+
+    def save(partial):
+      progress.update(1)
+      progress.clear()
+      if len(partial['records']) == 1:
+        print(format_header(partial), flush=True)
+      index = len(partial['records']) - 1
+      print(format_row(index, partial['records'][-1]), flush=True)
+      progress.refresh()
+      if FLAGS.output:
+        everything = [*finished, partial]
+        write_json(FLAGS.output, everything if sweep else partial)
+
+    for domain, task in tasks:
+      results = evaluate(
+        domain,
+        task,
+        FLAGS.episodes,
+        policy=FLAGS.policy,
+        seed=FLAGS.seed,
+        task_kwargs=task_kwargs,
+        device_path=FLAGS.device_path,
+        robot_config=FLAGS.robot_config,
+        reset=FLAGS.reset,
+        guide=FLAGS.guide,
+        on_episode=save,
+      )
+      finished.append(results)
+      print(format_summary(results), flush=True)
+    progress.close()
   except (ValueError, RuntimeError) as error:
     print(f'error: {error}', file=sys.stderr)
     return 2
   except KeyboardInterrupt:
-    # A robot's motors were released on the way out (see hardware.shutdown).
+    # A robot's motors were released on the way out (see hardware.shutdown);
+    # every finished episode is in --output already.
     print('interrupted', file=sys.stderr)
     return 130
-  print(format_table(results))
   if FLAGS.output:
-    with open(FLAGS.output, 'w') as f:
-      json.dump(results, f, indent=2)
     print(f'wrote {FLAGS.output}')
   return 0
 

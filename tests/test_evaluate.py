@@ -2,8 +2,10 @@
 
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -44,7 +46,8 @@ def test_metrics_match_a_manual_rollout(domain, task):
   env = suite.load(domain, task, seed=seed)
   zeros = np.zeros(env.action_spec().shape)
   returns, successes, safety, steps = [], [], np.zeros(3), []
-  for _ in range(2):
+  for episode in range(2):
+    env.random_state.seed(seed + episode)  # Episode i's seed: seed + i.
     timestep = env.reset()
     total, count = 0.0, 0
     while not timestep.last():
@@ -62,6 +65,11 @@ def test_metrics_match_a_manual_rollout(domain, task):
   if domain == 'dclaw':
     assert steps == [40, 40]
   assert results['steps_per_second'] > 0
+  assert [r['seed'] for r in results['records']] == [seed, seed + 1]
+  assert results['provenance']['versions']['mujoco'] == '3.17.0'
+  spread = results['spread']['return']
+  assert spread['mean'] == pytest.approx(np.mean(returns))
+  assert spread['ci95'][0] <= spread['mean'] <= spread['ci95'][1]
 
 
 def test_random_policy_is_seeded_and_inside_the_bounds():
@@ -175,3 +183,53 @@ def test_cli_rejects_bad_input_with_a_clear_message(flags, message, tmp_path):
   result = _run_cli(*flags, cwd=tmp_path)
   assert result.returncode != 0
   assert message in result.stderr
+
+
+def test_cli_lists_the_tasks(tmp_path):
+  result = _run_cli('--list', cwd=tmp_path)
+  assert result.returncode == 0, result.stderr
+  assert 'dclaw' in result.stdout and 'walk_random_dynamics' in result.stdout
+
+
+def test_cli_sweeps_every_task(tmp_path):
+  output = tmp_path / 'sweep.json'
+  result = _run_cli(
+    '--domain=all', '--task=all', '--episodes=1', '--policy=zero',
+    f'--output={output}', cwd=tmp_path,
+  )  # fmt: skip
+  assert result.returncode == 0, result.stderr
+  results = json.loads(output.read_text())
+  assert [(r['domain'], r['task']) for r in results] == list(suite.ALL_TASKS)
+  assert all(r['episodes'] == 1 for r in results)
+  # Each task's rows are printed as its episodes end.
+  assert result.stdout.count('success rate') == len(suite.ALL_TASKS)
+
+
+def test_cli_checks_the_output_path_before_the_first_episode(tmp_path):
+  result = _run_cli(
+    '--episodes=1', f'--output={tmp_path}/missing/results.json', cwd=tmp_path
+  )
+  assert result.returncode == 2
+  assert 'no folder' in result.stderr and 'episode' not in result.stdout
+
+
+def test_ctrl_c_mid_sweep_keeps_every_finished_episode(tmp_path):
+  output = tmp_path / 'sweep.json'
+  process = subprocess.Popen(
+    [sys.executable, '-m', 'robel_dm.evaluate', '--domain=dclaw',
+     '--task=all', '--episodes=20', '--policy=zero', f'--output={output}'],
+    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    env=dict(os.environ, MUJOCO_GL='egl'),
+  )  # fmt: skip
+  deadline = time.monotonic() + 60
+  while not output.exists() and time.monotonic() < deadline:
+    time.sleep(0.05)
+  time.sleep(0.5)  # A few more episodes.
+  process.send_signal(signal.SIGINT)
+  _, errors = process.communicate(timeout=60)
+  assert process.returncode == 130, errors
+  saved = json.loads(output.read_text())  # Valid JSON.
+  saved = saved if isinstance(saved, list) else [saved]
+  episodes = sum(r['episodes'] for r in saved)
+  assert 1 <= episodes < 20 * 9
+  assert all(len(r['records']) == r['episodes'] for r in saved)
