@@ -20,7 +20,7 @@ from absl import app, flags, logging
 import numpy as np
 import tqdm
 
-from robel_dm import policies, provenance, suite
+from robel_dm import policies, provenance, suite, video
 from robel_dm.tasks import base
 
 
@@ -57,9 +57,16 @@ def parse_task_kwargs(text: str) -> dict[str, Any]:
 
 
 def run_episode(
-  env, act: policies.Policy, episode_seed: int | None
+  env, act: policies.Policy, episode_seed: int | None, on_step=None
 ) -> tuple[dict[str, Any], int, float]:
   """Runs one episode from a seeded reset.
+
+  Args:
+    env: the environment.
+    act: the policy.
+    episode_seed: the reset's seed; None continues the random state.
+    on_step: called after the reset and after every step (e.g. to add a
+      video frame); its time is not counted as step time.
 
   Returns:
     Its record, its number of steps and the seconds spent in `env.step`.
@@ -67,6 +74,8 @@ def run_episode(
   if episode_seed is not None:
     env.random_state.seed(episode_seed)
   timestep = env.reset()
+  if on_step is not None:
+    on_step()
   episode_return, scores = 0.0, []
   safety = np.zeros(len(base.SAFETY_FIELDS), dtype=np.int64)
   step_seconds = 0.0
@@ -75,6 +84,8 @@ def run_episode(
     start = time.perf_counter()
     timestep = env.step(action)
     step_seconds += time.perf_counter() - start
+    if on_step is not None:
+      on_step()
     episode_return += timestep.reward
     scores.append(float(timestep.observation[base.SCORE]))
     safety += timestep.observation[base.SAFETY]
@@ -136,6 +147,8 @@ def evaluate(
   reset: str | None = None,
   guide: str | None = None,
   on_episode=None,
+  video_dir: str | None = None,
+  camera: str | None = None,
 ) -> dict[str, Any]:
   """Runs `episodes` episodes and returns the metrics.
 
@@ -158,6 +171,8 @@ def evaluate(
     guide: guide motor mode for `device_path` (see `suite.load`).
     on_episode: called with the results so far after every episode (to
       print rows and save partial results as they come).
+    video_dir: write one MP4 per episode here (`robel_dm.video`).
+    camera: the videos' camera; the domain's default if None.
 
   Returns:
     A JSON-serializable dict of per-episode records, summary metrics,
@@ -201,9 +216,27 @@ def evaluate(
         policy.check_task(domain, task, task_kwargs)
     else:
       act = policies.make_policy(policy, env, seed, domain, task, task_kwargs)
+    if video_dir is not None:
+      camera = camera or video.DEFAULT_CAMERAS[domain]
+      video.check_camera(env, camera)
+      os.makedirs(video_dir, exist_ok=True)
     for episode in range(episodes):
       episode_seed = None if seed is None else seed + episode
-      record, steps, seconds = run_episode(env, act, episode_seed)
+      writer = on_step = None
+      if video_dir is not None:
+        path = os.path.join(video_dir, f'{domain}_{task}_{episode:04d}.mp4')
+        writer = video.VideoWriter(path, fps=1 / env.control_timestep())
+
+        def on_step(writer=writer):
+          writer.add(video.render(env, camera))
+
+      try:
+        record, steps, seconds = run_episode(env, act, episode_seed, on_step)
+      finally:
+        if writer is not None:
+          writer.close()
+      if writer is not None:
+        record['video'] = path
       records.append(record)
       total_steps += steps
       step_seconds += seconds
@@ -329,6 +362,14 @@ def _define_flags() -> None:
     'task', 'pose_fixed', "Task name in the domain, or 'all' (a sweep)."
   )
   flags.DEFINE_bool('list', False, 'List the tasks and exit.')
+  flags.DEFINE_string(
+    'video', None, 'Write one MP4 per episode into this folder.'
+  )
+  flags.DEFINE_string(
+    'camera',
+    None,
+    "The videos' camera (default: dclaw front, dkitty overview).",
+  )
   flags.DEFINE_integer('episodes', 10, 'Number of episodes.', lower_bound=1)
   flags.DEFINE_integer('seed', 0, 'Seed of the environment and policy.')
   flags.DEFINE_string(
@@ -422,6 +463,8 @@ def main(argv):
         reset=FLAGS.reset,
         guide=FLAGS.guide,
         on_episode=save,
+        video_dir=FLAGS.video,
+        camera=FLAGS.camera,
       )
       finished.append(results)
       print(format_summary(results), flush=True)

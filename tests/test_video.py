@@ -58,3 +58,17 @@ def test_unknown_cameras_are_named():
   assert 'overview' in video.camera_names(env)
   assert isinstance(video.render(env, 'overview', (64, 64)), np.ndarray)
   env.close()
+
+
+def test_evaluate_writes_a_video_per_episode(tmp_path):
+  from robel_dm import evaluate  # noqa: PLC0415
+
+  results = evaluate.evaluate(
+    'dkitty', 'stand_fixed', 2, policy='zero', video_dir=str(tmp_path)
+  )
+  paths = [record['video'] for record in results['records']]
+  assert len(set(paths)) == 2
+  for path, record in zip(paths, results['records'], strict=True):
+    reader = imageio_ffmpeg.read_frames(path)
+    next(reader)
+    assert sum(1 for _ in reader) == record['steps'] + 1
