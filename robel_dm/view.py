@@ -1,0 +1,87 @@
+r"""Opens dm_control's interactive viewer on a robel_dm task.
+
+    python -m robel_dm.view --domain=dclaw --task=turn_fixed --policy=reference
+
+The viewer draws into a window, so it needs a display and MuJoCo's `glfw`
+OpenGL backend: this command selects `glfw` when MUJOCO_GL is unset, and
+explains what to change when MUJOCO_GL asks for offscreen rendering (`egl`,
+`osmesa`) or there is no display. Space pauses, backspace restarts the
+episode; see dm_control's viewer documentation for the rest.
+"""
+
+import os
+import sys
+
+# Before dm_control is imported: it picks its OpenGL backend on import. An
+# offscreen PyOpenGL platform inherited from a parent process (dm_control
+# sets one for egl and osmesa) would break the window's context.
+os.environ.setdefault('MUJOCO_GL', 'glfw')
+if os.environ['MUJOCO_GL'] == 'glfw':
+  os.environ.pop('PYOPENGL_PLATFORM', None)
+
+from absl import app, flags  # noqa: E402
+
+from robel_dm import evaluate, policies, suite  # noqa: E402
+
+_OFFSCREEN_BACKENDS = ('egl', 'osmesa')
+
+
+def check_display(environ=os.environ) -> None:
+  """Raises ValueError explaining why no viewer window can open."""
+  backend = environ.get('MUJOCO_GL', 'glfw')
+  if backend in _OFFSCREEN_BACKENDS:
+    raise ValueError(
+      f'MUJOCO_GL={backend} renders offscreen only; the viewer needs a '
+      'window: unset MUJOCO_GL (or set MUJOCO_GL=glfw) and run it on a '
+      'display. For videos on a headless machine use '
+      '`python -m robel_dm.evaluate --video=DIR`.'
+    )
+  if not environ.get('DISPLAY') and not environ.get('WAYLAND_DISPLAY'):
+    raise ValueError(
+      'no display (DISPLAY is unset): run the viewer on a desktop, over X '
+      'forwarding (ssh -X), or under a virtual display (xvfb-run)'
+    )
+
+
+def _define_flags() -> None:
+  flags.DEFINE_string('domain', 'dclaw', 'Task domain.')
+  flags.DEFINE_string('task', 'turn_fixed', 'Task name in the domain.')
+  flags.DEFINE_string(
+    'policy',
+    None,
+    'Policy to run (as for robel_dm.evaluate); none: the viewer waits for '
+    'you to act on the scene.',
+  )
+  flags.DEFINE_string('task_kwargs', '', 'Task arguments (as for evaluate).')
+  flags.DEFINE_integer('seed', 0, 'Seed of the environment.')
+
+
+FLAGS = flags.FLAGS
+
+
+def main(argv):
+  if len(argv) > 1:
+    raise app.UsageError(f'unexpected arguments: {argv[1:]}')
+  try:
+    check_display()
+    task_kwargs = evaluate.parse_task_kwargs(FLAGS.task_kwargs)
+    env = suite.load(
+      FLAGS.domain, FLAGS.task, seed=FLAGS.seed, task_kwargs=task_kwargs
+    )
+    policy = None
+    if FLAGS.policy:
+      policy = policies.make_policy(
+        FLAGS.policy, env, FLAGS.seed, FLAGS.domain, FLAGS.task, task_kwargs
+      )
+    from dm_control import viewer  # noqa: PLC0415 (needs a display)
+
+    viewer.launch(env, policy=policy)
+  except ValueError as error:
+    print(f'error: {error}', file=sys.stderr)
+    return 2
+  return 0
+
+
+if __name__ == '__main__':
+  _define_flags()
+  app.run(main)
