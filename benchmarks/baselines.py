@@ -46,8 +46,10 @@ class Run:
 
 
 RUNS = (
-  # Queue 1: the D'Claw's Turn, the longest (about 35 min a seed).
+  # Queue 1: the D'Claw's Turn (about 50 min a seed here) and second seeds.
   Run('dclaw', 'turn_fixed', 0, 180_000, queue=1),
+  Run('dclaw', 'screw_fixed', 1, 40_000, queue=1),
+  Run('dkitty', 'walk_fixed', 1, 50_000, queue=1),
   Run('dclaw', 'turn_fixed', 1, 180_000, queue=1),
   # Queue 0: the rest.
   Run('dclaw', 'pose_fixed', 0, 15_000),
@@ -60,8 +62,6 @@ RUNS = (
   Run('dkitty', 'walk_fixed', 0, 50_000),
   Run('dclaw', 'screw_fixed', 0, 40_000),
   Run('dkitty', 'orient_fixed', 1, 40_000),
-  Run('dkitty', 'walk_fixed', 1, 50_000),
-  Run('dclaw', 'screw_fixed', 1, 40_000),
 )
 
 
