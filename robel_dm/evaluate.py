@@ -9,8 +9,10 @@ episode's last step), mean return, mean score, mean safety violations per
 episode and the control steps per second.
 """
 
+import concurrent.futures
 import json
 import math
+import multiprocessing
 import os
 import sys
 import time
@@ -149,6 +151,7 @@ def evaluate(
   on_episode=None,
   video_dir: str | None = None,
   camera: str | None = None,
+  workers: int = 1,
 ) -> dict[str, Any]:
   """Runs `episodes` episodes and returns the metrics.
 
@@ -173,6 +176,8 @@ def evaluate(
       print rows and save partial results as they come).
     video_dir: write one MP4 per episode here (`robel_dm.video`).
     camera: the videos' camera; the domain's default if None.
+    workers: run the episodes in this many local processes (simulation,
+      a policy given by name or path); the records equal a serial run's.
 
   Returns:
     A JSON-serializable dict of per-episode records, summary metrics,
@@ -184,6 +189,15 @@ def evaluate(
   """
   if episodes < 1:
     raise ValueError(f'episodes must be >= 1, got {episodes}')
+  if workers < 1:
+    raise ValueError(f'workers must be >= 1, got {workers}')
+  if workers > 1 and (
+    callable(policy) or device_path or video_dir or seed is None
+  ):
+    raise ValueError(
+      'workers > 1 needs a simulated task, a seed, no video, and a policy '
+      'given by name or path'
+    )
   env = suite.load(
     domain,
     task,
@@ -216,6 +230,17 @@ def evaluate(
         policy.check_task(domain, task, task_kwargs)
     else:
       act = policies.make_policy(policy, env, seed, domain, task, task_kwargs)
+    if workers > 1:
+      env.close()
+      for record, steps, seconds in _parallel_episodes(
+        domain, task, task_kwargs, policy, seed, episodes, workers
+      ):
+        records.append(record)
+        total_steps += steps
+        step_seconds += seconds
+        if on_episode is not None:
+          on_episode(results())
+      return results()
     if video_dir is not None:
       camera = camera or video.DEFAULT_CAMERAS[domain]
       video.check_camera(env, camera)
@@ -230,6 +255,8 @@ def evaluate(
         def on_step(writer=writer):
           writer.add(video.render(env, camera))
 
+      if policy == 'random':  # Each episode's actions from its own seed.
+        act = policies.make_policy(policy, env, episode_seed)
       try:
         record, steps, seconds = run_episode(env, act, episode_seed, on_step)
       finally:
@@ -254,6 +281,44 @@ def evaluate(
   finally:
     env.close()
   return results()
+
+
+# Each worker process keeps its environments and policies between episodes.
+_WORKER_CACHE: dict = {}
+
+
+def _worker_episode(domain, task, task_kwargs, policy, episode_seed):
+  """One episode in a worker process (see `evaluate(workers=...)`)."""
+  key = (domain, task, json.dumps(task_kwargs or {}, sort_keys=True), policy)
+  if key not in _WORKER_CACHE:
+    env = suite.load(domain, task, seed=episode_seed, task_kwargs=task_kwargs)
+    act = policies.make_policy(
+      policy, env, episode_seed, domain, task, task_kwargs
+    )
+    _WORKER_CACHE[key] = (env, act)
+  env, act = _WORKER_CACHE[key]
+  if policy == 'random':
+    act = policies.make_policy(policy, env, episode_seed)
+  return run_episode(env, act, episode_seed)
+
+
+def _parallel_episodes(domain, task, task_kwargs, policy, seed, count, workers):
+  """Yields the episodes' (record, steps, seconds), in episode order."""
+  context = multiprocessing.get_context('spawn')  # MuJoCo and GL: no fork.
+  with concurrent.futures.ProcessPoolExecutor(workers, context) as pool:
+    futures = [
+      pool.submit(
+        _worker_episode, domain, task, task_kwargs, policy, seed + episode
+      )
+      for episode in range(count)
+    ]
+    try:
+      for future in futures:
+        yield future.result()
+    except BaseException:
+      for future in futures:
+        future.cancel()
+      raise
 
 
 _ROW_HEADER = (
@@ -362,6 +427,12 @@ def _define_flags() -> None:
     'task', 'pose_fixed', "Task name in the domain, or 'all' (a sweep)."
   )
   flags.DEFINE_bool('list', False, 'List the tasks and exit.')
+  flags.DEFINE_integer(
+    'workers',
+    1,
+    'Run the episodes in this many local processes.',
+    lower_bound=1,
+  )
   flags.DEFINE_string(
     'video', None, 'Write one MP4 per episode into this folder.'
   )
@@ -465,6 +536,7 @@ def main(argv):
         on_episode=save,
         video_dir=FLAGS.video,
         camera=FLAGS.camera,
+        workers=FLAGS.workers,
       )
       finished.append(results)
       print(format_summary(results), flush=True)

@@ -233,3 +233,20 @@ def test_ctrl_c_mid_sweep_keeps_every_finished_episode(tmp_path):
   episodes = sum(r['episodes'] for r in saved)
   assert 1 <= episodes < 20 * 9
   assert all(len(r['records']) == r['episodes'] for r in saved)
+
+
+@pytest.mark.parametrize('policy', ['random', 'zero'])
+def test_workers_give_the_same_episodes_as_a_serial_run(policy):
+  serial = evaluate.evaluate('dclaw', 'turn_random', 4, policy=policy, seed=7)
+  parallel = evaluate.evaluate(
+    'dclaw', 'turn_random', 4, policy=policy, seed=7, workers=2
+  )
+  assert parallel['records'] == serial['records']
+  assert parallel['success_rate'] == serial['success_rate']
+
+
+def test_workers_refuse_what_they_cannot_share():
+  with pytest.raises(ValueError, match='workers > 1'):
+    evaluate.evaluate(
+      'dclaw', 'pose_fixed', 2, policy=lambda t: np.zeros(9), workers=2
+    )
