@@ -1,6 +1,6 @@
 """Speed-up of `evaluate --workers=N` over a serial run of the same episodes.
 
-    MUJOCO_GL=egl python benchmarks/bench_workers.py [--episodes 40] [--workers 2]
+    MUJOCO_GL=egl python benchmarks/bench_workers.py --episodes 40 --workers 2
 
 Runs the same seeded episodes serially and with N local worker processes
 (worker start-up included), checks that the records are equal, and prints
