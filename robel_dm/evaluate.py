@@ -152,6 +152,7 @@ def evaluate(
   video_dir: str | None = None,
   camera: str | None = None,
   workers: int = 1,
+  tracker: str | None = None,
 ) -> dict[str, Any]:
   """Runs `episodes` episodes and returns the metrics.
 
@@ -178,6 +179,9 @@ def evaluate(
     camera: the videos' camera; the domain's default if None.
     workers: run the episodes in this many local processes (simulation,
       a policy given by name or path); the records equal a serial run's.
+    tracker: with `device_path`, a D'Kitty's motion tracker as a spec
+      (`robel_dm.hardware.tracker_spec`), e.g.
+      'natnet:10.0.0.5,rigid_body=1,target=2'.
 
   Returns:
     A JSON-serializable dict of per-episode records, summary metrics,
@@ -198,6 +202,10 @@ def evaluate(
       'workers > 1 needs a simulated task, a seed, no video, and a policy '
       'given by name or path'
     )
+  if tracker is not None:
+    from robel_dm.hardware import tracker_spec  # noqa: PLC0415
+
+    tracker = tracker_spec.make_tracker(tracker)
   env = suite.load(
     domain,
     task,
@@ -207,6 +215,7 @@ def evaluate(
     robot_config=robot_config,
     reset=reset,
     guide=guide,
+    tracker=tracker,
   )
   head = {
     'domain': domain,
@@ -427,6 +436,13 @@ def _define_flags() -> None:
     'task', 'pose_fixed', "Task name in the domain, or 'all' (a sweep)."
   )
   flags.DEFINE_bool('list', False, 'List the tasks and exit.')
+  flags.DEFINE_string(
+    'tracker',
+    None,
+    "With --device_path, the D'Kitty's motion tracker: "
+    'natnet:SERVER[:PORT],rigid_body=ID[,target=ID,heading=ID,'
+    'multicast=GROUP|unicast,data_port=N,local=ADDR,version=4.0,y_up=true].',
+  )
   flags.DEFINE_integer(
     'workers',
     1,
@@ -537,6 +553,7 @@ def main(argv):
         video_dir=FLAGS.video,
         camera=FLAGS.camera,
         workers=FLAGS.workers,
+        tracker=FLAGS.tracker,
       )
       finished.append(results)
       print(format_summary(results), flush=True)
