@@ -9,10 +9,8 @@ episode's last step), mean return, mean score, mean safety violations per
 episode and the control steps per second.
 """
 
-import concurrent.futures
 import json
 import math
-import multiprocessing
 import os
 import sys
 import time
@@ -22,7 +20,7 @@ from absl import app, flags, logging
 import numpy as np
 import tqdm
 
-from robel_dm import policies, provenance, suite, video
+from robel_dm import parallel, policies, provenance, suite, video
 from robel_dm.tasks import base
 
 
@@ -153,6 +151,7 @@ def evaluate(
   camera: str | None = None,
   workers: int = 1,
   tracker: str | None = None,
+  ray_address: str | None = None,
 ) -> dict[str, Any]:
   """Runs `episodes` episodes and returns the metrics.
 
@@ -179,6 +178,9 @@ def evaluate(
     camera: the videos' camera; the domain's default if None.
     workers: run the episodes in this many local processes (simulation,
       a policy given by name or path); the records equal a serial run's.
+    ray_address: run the episodes as tasks of a Ray cluster: its address
+      ('auto' for the one this machine belongs to), or 'local' to start
+      one here; the records equal a serial run's.
     tracker: with `device_path`, a D'Kitty's motion tracker as a spec
       (`robel_dm.hardware.tracker_spec`), e.g.
       'natnet:10.0.0.5,rigid_body=1,target=2'.
@@ -195,12 +197,12 @@ def evaluate(
     raise ValueError(f'episodes must be >= 1, got {episodes}')
   if workers < 1:
     raise ValueError(f'workers must be >= 1, got {workers}')
-  if workers > 1 and (
+  if (workers > 1 or ray_address) and (
     callable(policy) or device_path or video_dir or seed is None
   ):
     raise ValueError(
-      'workers > 1 needs a simulated task, a seed, no video, and a policy '
-      'given by name or path'
+      'workers > 1 and ray_address need a simulated task, a seed, no video, '
+      'and a policy given by name or path'
     )
   if tracker is not None:
     from robel_dm.hardware import tracker_spec  # noqa: PLC0415
@@ -239,11 +241,13 @@ def evaluate(
         policy.check_task(domain, task, task_kwargs)
     else:
       act = policies.make_policy(policy, env, seed, domain, task, task_kwargs)
-    if workers > 1:
+    if workers > 1 or ray_address:
       env.close()
-      for record, steps, seconds in _parallel_episodes(
-        domain, task, task_kwargs, policy, seed, episodes, workers
-      ):
+      run = parallel.ray_episodes if ray_address else parallel.local_episodes
+      for record, steps, seconds in run(
+        domain, task, task_kwargs, policy, seed, episodes,
+        ray_address or workers,
+      ):  # fmt: skip
         records.append(record)
         total_steps += steps
         step_seconds += seconds
@@ -290,44 +294,6 @@ def evaluate(
   finally:
     env.close()
   return results()
-
-
-# Each worker process keeps its environments and policies between episodes.
-_WORKER_CACHE: dict = {}
-
-
-def _worker_episode(domain, task, task_kwargs, policy, episode_seed):
-  """One episode in a worker process (see `evaluate(workers=...)`)."""
-  key = (domain, task, json.dumps(task_kwargs or {}, sort_keys=True), policy)
-  if key not in _WORKER_CACHE:
-    env = suite.load(domain, task, seed=episode_seed, task_kwargs=task_kwargs)
-    act = policies.make_policy(
-      policy, env, episode_seed, domain, task, task_kwargs
-    )
-    _WORKER_CACHE[key] = (env, act)
-  env, act = _WORKER_CACHE[key]
-  if policy == 'random':
-    act = policies.make_policy(policy, env, episode_seed)
-  return run_episode(env, act, episode_seed)
-
-
-def _parallel_episodes(domain, task, task_kwargs, policy, seed, count, workers):
-  """Yields the episodes' (record, steps, seconds), in episode order."""
-  context = multiprocessing.get_context('spawn')  # MuJoCo and GL: no fork.
-  with concurrent.futures.ProcessPoolExecutor(workers, context) as pool:
-    futures = [
-      pool.submit(
-        _worker_episode, domain, task, task_kwargs, policy, seed + episode
-      )
-      for episode in range(count)
-    ]
-    try:
-      for future in futures:
-        yield future.result()
-    except BaseException:
-      for future in futures:
-        future.cancel()
-      raise
 
 
 _ROW_HEADER = (
@@ -443,6 +409,12 @@ def _define_flags() -> None:
     'natnet:SERVER[:PORT],rigid_body=ID[,target=ID,heading=ID,'
     'multicast=GROUP|unicast,data_port=N,local=ADDR,version=4.0,y_up=true].',
   )
+  flags.DEFINE_string(
+    'ray_address',
+    None,
+    "Run the episodes on a Ray cluster: its address, 'auto', or 'local' to "
+    'start one here.',
+  )
   flags.DEFINE_integer(
     'workers',
     1,
@@ -554,6 +526,7 @@ def main(argv):
         camera=FLAGS.camera,
         workers=FLAGS.workers,
         tracker=FLAGS.tracker,
+        ray_address=FLAGS.ray_address,
       )
       finished.append(results)
       print(format_summary(results), flush=True)

@@ -250,3 +250,12 @@ def test_workers_refuse_what_they_cannot_share():
     evaluate.evaluate(
       'dclaw', 'pose_fixed', 2, policy=lambda t: np.zeros(9), workers=2
     )
+
+
+def test_a_local_ray_instance_gives_the_same_episodes_as_a_serial_run():
+  pytest.importorskip('ray')
+  serial = evaluate.evaluate('dclaw', 'pose_random', 3, policy='random', seed=2)
+  on_ray = evaluate.evaluate(
+    'dclaw', 'pose_random', 3, policy='random', seed=2, ray_address='local'
+  )
+  assert on_ray['records'] == serial['records']

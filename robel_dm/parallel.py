@@ -1,0 +1,82 @@
+"""Episodes of an evaluation spread over local processes or a Ray cluster.
+
+Each episode runs from a reset seeded `seed + i` in a worker that keeps its
+environment and policy between episodes, so the records equal those of a
+serial run (`evaluate.evaluate(workers=...)`, `ray_address=...`).
+"""
+
+import concurrent.futures
+import json
+import multiprocessing
+import os
+
+from robel_dm import evaluate, policies, suite
+
+# Each worker process keeps its environments and policies between episodes.
+_WORKER_CACHE: dict = {}
+
+
+def worker_episode(domain, task, task_kwargs, policy, episode_seed):
+  """One episode in a worker process (see `evaluate(workers=...)`)."""
+  key = (domain, task, json.dumps(task_kwargs or {}, sort_keys=True), policy)
+  if key not in _WORKER_CACHE:
+    env = suite.load(domain, task, seed=episode_seed, task_kwargs=task_kwargs)
+    act = policies.make_policy(
+      policy, env, episode_seed, domain, task, task_kwargs
+    )
+    _WORKER_CACHE[key] = (env, act)
+  env, act = _WORKER_CACHE[key]
+  if policy == 'random':
+    act = policies.make_policy(policy, env, episode_seed)
+  return evaluate.run_episode(env, act, episode_seed)
+
+
+def local_episodes(domain, task, task_kwargs, policy, seed, count, workers):
+  """Yields the episodes' (record, steps, seconds), in episode order."""
+  context = multiprocessing.get_context('spawn')  # MuJoCo and GL: no fork.
+  with concurrent.futures.ProcessPoolExecutor(workers, context) as pool:
+    futures = [
+      pool.submit(
+        worker_episode, domain, task, task_kwargs, policy, seed + episode
+      )
+      for episode in range(count)
+    ]
+    try:
+      for future in futures:
+        yield future.result()
+    except BaseException:
+      for future in futures:
+        future.cancel()
+      raise
+
+
+def ray_episodes(domain, task, task_kwargs, policy, seed, count, address):
+  """Yields the episodes' (record, steps, seconds) from Ray tasks, in
+  episode order (Ray from the `scale` extra)."""
+  try:
+    import ray  # noqa: PLC0415
+  except ImportError as error:
+    raise ValueError(
+      'ray_address needs Ray: pip install "robel_dm[scale]"'
+    ) from error
+  started = not ray.is_initialized()
+  if started:
+    ray.init(
+      address=None if address == 'local' else address,
+      include_dashboard=False,
+      log_to_driver=False,
+      runtime_env={
+        'env_vars': {'MUJOCO_GL': os.environ.get('MUJOCO_GL', 'egl')}
+      },
+    )
+  try:
+    remote = ray.remote(worker_episode)
+    refs = [
+      remote.remote(domain, task, task_kwargs, policy, seed + episode)
+      for episode in range(count)
+    ]
+    for ref in refs:
+      yield ray.get(ref)
+  finally:
+    if started:
+      ray.shutdown()
