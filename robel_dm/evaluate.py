@@ -407,7 +407,7 @@ def _define_flags() -> None:
     None,
     "With --device_path, the D'Kitty's motion tracker: "
     'natnet:SERVER[:PORT],rigid_body=ID[,target=ID,heading=ID,'
-    'multicast=GROUP|unicast,data_port=N,local=ADDR,version=4.0,y_up=true].',
+    'multicast=GROUP|unicast,data_port=N,local=ADDR,version=4.1,y_up=true].',
   )
   flags.DEFINE_string(
     'ray_address',

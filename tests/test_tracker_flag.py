@@ -18,7 +18,7 @@ def test_specs_parse_with_defaults_and_reject_mistakes():
   assert fields['server'] == '10.0.0.5'
   assert fields['command_port'] == natnet.DEFAULT_COMMAND_PORT
   assert fields['data_port'] == natnet.DEFAULT_DATA_PORT
-  assert fields['version'] == (4, 0) and fields['y_up'] is True
+  assert 'version' not in fields and fields['y_up'] is True
   assert tracker_spec.parse('natnet:h:1600,rigid_body=3,version=3.1,'
                             'y_up=false')['version'] == (3, 1)  # fmt: skip
   for bad, message in [

@@ -57,9 +57,14 @@ section carries one after its count is inferred, not confirmed against
 Motive, and what it counts is not stated, so the decoder skips it and walks
 every section by its element counts.
 Versions 3.0, 3.1 and 4.0 have the identical layout above; 2.x (rigid bodies
-with marker lists) is not supported. Checked: the round trip against this
-module's own encoder for every supported version (tests/test_tracking.py);
-not checked against a running Motive.
+with marker lists) is not supported. The version is detected from the first
+frame unless given (`detect_version`: only 4.1's layout differs). Checked:
+the round trip against this module's own encoder for every supported version
+(tests/test_tracking.py), and every frame this module encodes decoded by an
+independent implementation, the `natnet` package on PyPI, which reads the
+tracking-valid flag as bit 0 of `params` and 4.1's byte count after each
+section's count as assumed here (tests/test_natnet_independent.py); not
+checked against a running Motive.
 
 Unicast: with `server_address`, the client sends a connect request
 (NAT_CONNECT, message 0) and then a keep-alive (message 10) every second to
@@ -240,6 +245,44 @@ def decode_frame(
   return Frame(frame_number, tuple(bodies))
 
 
+def detect_version(payload: bytes) -> tuple[int, int]:
+  """Which layout a frame-of-data payload has: (4, 1) (sections carry byte
+  counts) or (4, 0) (the layout 3.0, 3.1 and 4.0 share).
+
+  A payload is taken as 4.1 when every byte count of the sections decoded
+  here equals the bytes its section holds; a 4.0 payload read that way
+  fails that check (its first "byte count" is the next section's data).
+
+  Raises:
+    NatNetError: if the payload fits neither layout.
+  """
+  reader = _Reader(payload)
+  try:
+    reader.unpack(_INT32)  # Frame number.
+    consistent = True
+    marker_sets = reader.count('marker set')
+    (size,) = reader.unpack(_INT32)
+    start = reader.offset
+    for _ in range(marker_sets):
+      reader.skip_string()
+      reader.take(_MARKER_BYTES * reader.count('marker'))
+    consistent &= reader.offset - start == size
+    markers = reader.count('unlabeled marker')
+    (size,) = reader.unpack(_INT32)
+    consistent &= size == _MARKER_BYTES * markers
+    reader.take(_MARKER_BYTES * markers)
+    bodies = reader.count('rigid body')
+    (size,) = reader.unpack(_INT32)
+    consistent &= size == _RIGID_BODY.size * bodies
+    reader.take(_RIGID_BODY.size * bodies)
+  except NatNetError:
+    consistent = False
+  if consistent:
+    return (4, 1)
+  decode_frame(payload, (4, 0))  # Raises if it is not 4.0 either.
+  return (4, 0)
+
+
 def decode_message(
   datagram: bytes, version: Sequence[int] = DEFAULT_VERSION
 ) -> Frame | None:
@@ -358,7 +401,7 @@ class NatNetClient:
     local_interface: str = '0.0.0.0',
     server_address: str | None = None,
     command_port: int = DEFAULT_COMMAND_PORT,
-    version: Sequence[int] = DEFAULT_VERSION,
+    version: Sequence[int] | None = None,
     clock=time.monotonic,
   ):
     """Opens the data socket and starts the receiver thread.
@@ -374,14 +417,15 @@ class NatNetClient:
         from other hosts are ignored.
       command_port: Motive's command port.
       version: NatNet (major, minor) version Motive streams (its
-        "bitstream version"); 3.0, 3.1, 4.0 and 4.1 are supported.
+        "bitstream version"); 3.0, 3.1, 4.0 and 4.1 are supported. None
+        (default): detected from the first frame (`detect_version`).
       clock: the receive-time clock (seconds).
 
     Raises:
       ValueError: for an unsupported version.
       OSError: if the socket cannot be opened or the group joined.
     """
-    self._version = _check_version(version)
+    self._version = None if version is None else _check_version(version)
     self._clock = clock
     self._server = (
       (server_address, command_port) if server_address is not None else None
@@ -427,8 +471,14 @@ class NatNetClient:
     return self._address
 
   @property
-  def version(self) -> tuple[int, int]:
+  def version(self) -> tuple[int, int] | None:
+    """The stream's NatNet version (None until detected)."""
     return self._version
+
+  def _version_text(self) -> str:
+    if self._version is None:
+      return '(version not yet detected)'
+    return f'{self._version[0]}.{self._version[1]}'
 
   @property
   def stats(self) -> dict[str, int]:
@@ -447,7 +497,7 @@ class NatNetClient:
     )
     stats = self.stats
     text = (
-      f'NatNet {self._version[0]}.{self._version[1]} {mode} on port {port}: '
+      f'NatNet {self._version_text()} {mode} on port {port}: '
       f'{stats["frames"]} frames, {stats["malformed"]} malformed, '
       f'{stats["invalid"]} untracked bodies'
     )
@@ -513,7 +563,10 @@ class NatNetClient:
     if self._server is not None and sender[0] != self._server[0]:
       return
     try:
-      frame = decode_message(datagram, self._version)
+      if self._version is None and datagram[:2] == bytes([NAT_FRAMEOFDATA, 0]):
+        self._version = detect_version(datagram[_HEADER.size :])
+        logging.info('NatNet: the stream is version %s', self._version)
+      frame = decode_message(datagram, self._version or DEFAULT_VERSION)
     except NatNetError as error:
       with self._lock:
         self._stats['malformed'] += 1

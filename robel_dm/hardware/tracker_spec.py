@@ -10,7 +10,8 @@
               (default: Motive's 239.255.42.99);
   data_port   the local port frames arrive on (default 1511);
   local       the local address to bind / join on (default 0.0.0.0);
-  version     Motive's NatNet bitstream version, e.g. 4.0 (default 4.0);
+  version     Motive's NatNet bitstream version, e.g. 4.1 (default:
+              detected from the first frame);
   y_up        whether Motive streams y-up (its default): true or false.
 """
 
@@ -64,8 +65,9 @@ def parse(spec: str) -> dict:
     raise TrackerSpecError('--tracker: rigid_body=ID (the torso) is required')
   try:
     fields['data_port'] = int(fields.get('data_port', natnet.DEFAULT_DATA_PORT))
-    major, _, minor = fields.get('version', '4.0').partition('.')
-    fields['version'] = (int(major), int(minor or 0))
+    if 'version' in fields:
+      major, _, minor = fields['version'].partition('.')
+      fields['version'] = (int(major), int(minor or 0))
   except ValueError as error:
     raise TrackerSpecError(f'--tracker: {error}') from None
   y_up = fields.get('y_up', 'true').lower()
@@ -91,7 +93,7 @@ def make_tracker(spec: str) -> tracking.TorsoTracker:
     local_interface=fields.get('local', '0.0.0.0'),
     server_address=fields['server'],
     command_port=fields['command_port'],
-    version=fields['version'],
+    version=fields.get('version'),
   )
   return tracking.TorsoTracker(
     client,
