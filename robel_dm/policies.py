@@ -106,8 +106,13 @@ class NumpyPolicy:
     return self.act(flat)
 
   def save(self, path: str | pathlib.Path) -> None:
-    arrays = {f'weight_{i}': w for i, w in enumerate(self._weights)}
-    arrays.update({f'bias_{i}': b for i, b in enumerate(self._biases)})
+    # float32, as trained: half the size, and exact for torch's weights.
+    arrays = {
+      f'weight_{i}': w.astype(np.float32) for i, w in enumerate(self._weights)
+    }
+    arrays.update(
+      {f'bias_{i}': b.astype(np.float32) for i, b in enumerate(self._biases)}
+    )
     np.savez(
       path,
       activation=self.activation,

@@ -283,3 +283,36 @@ def test_ppo_policy_exports_too(tmp_path):
     'dclaw', 'turn_fixed', 1, policy=str(tmp_path / 'checkpoint.zip')
   )
   assert results['episodes'] == 1
+
+
+# --- Shipped baselines --------------------------------------------------------
+
+_SHIPPED = sorted(
+  tuple(path.stem.split('_', 1))
+  for path in pathlib.Path(__file__)
+  .resolve()
+  .parents[1]
+  .joinpath('policies')
+  .glob('*.npz')
+)
+
+
+def test_baselines_are_shipped_for_solved_tasks():
+  assert ('dclaw', 'pose_fixed') in _SHIPPED
+  assert ('dkitty', 'stand_fixed') in _SHIPPED
+
+
+@pytest.mark.parametrize(
+  'shipped', _SHIPPED, ids=['/'.join(t) for t in _SHIPPED]
+)
+def test_shipped_baselines_solve_their_tasks(shipped):
+  results = evaluate.evaluate(*shipped, 2, policy='baseline', seed=0)
+  assert results['success_rate'] == 1.0
+
+
+def test_the_pose_baseline_runs_on_the_virtual_bus():
+  pytest.importorskip('dynamixel_sdk')  # The hardware extra.
+  results = evaluate.evaluate(
+    'dclaw', 'pose_fixed', 1, policy='baseline', device_path='virtual'
+  )
+  assert results['success_rate'] == 1.0
