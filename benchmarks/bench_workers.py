@@ -1,6 +1,6 @@
 """Speed-up of `evaluate --workers=N` over a serial run of the same episodes.
 
-    MUJOCO_GL=egl python benchmarks/bench_workers.py --episodes 40 --workers 2
+    MUJOCO_GL=egl python benchmarks/bench_workers.py --episodes 200 --workers 2
 
 Runs the same seeded episodes serially and with N local worker processes
 (worker start-up included), checks that the records are equal, and prints
@@ -15,10 +15,10 @@ from robel_dm import evaluate
 
 def main() -> None:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  parser.add_argument('--domain', default='dclaw')
-  parser.add_argument('--task', default='turn_random')
-  parser.add_argument('--policy', default='random')
-  parser.add_argument('--episodes', type=int, default=40)
+  parser.add_argument('--domain', default='dkitty')
+  parser.add_argument('--task', default='walk_random')
+  parser.add_argument('--policy', default='zero')
+  parser.add_argument('--episodes', type=int, default=200)
   parser.add_argument('--workers', type=int, default=2)
   args = parser.parse_args()
   timings = {}
