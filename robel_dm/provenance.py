@@ -44,27 +44,24 @@ def versions() -> dict[str, str]:
   return found
 
 
+def _git(*args: str) -> str:
+  return subprocess.run(
+    ['git', *args],
+    cwd=_CHECKOUT,
+    capture_output=True,
+    text=True,
+    check=True,
+    timeout=10,
+  ).stdout.strip()
+
+
 def git_revision() -> str | None:
   """The source checkout's commit (+dirty), or None outside a checkout."""
   if not (_CHECKOUT / '.git').exists():
     return None
   try:
-    revision = subprocess.run(
-      ['git', 'rev-parse', 'HEAD'],
-      cwd=_CHECKOUT,
-      capture_output=True,
-      text=True,
-      check=True,
-      timeout=10,
-    ).stdout.strip()
-    dirty = subprocess.run(
-      ['git', 'status', '--porcelain', '--untracked-files=no'],
-      cwd=_CHECKOUT,
-      capture_output=True,
-      text=True,
-      check=True,
-      timeout=10,
-    ).stdout.strip()
+    revision = _git('rev-parse', 'HEAD')
+    dirty = _git('status', '--porcelain', '--untracked-files=no')
   except (OSError, subprocess.SubprocessError):
     return None
   return revision + ('+dirty' if dirty else '')
