@@ -20,7 +20,7 @@ from absl import app, flags, logging
 import numpy as np
 import tqdm
 
-from robel_dm import parallel, policies, provenance, suite, video
+from robel_dm import parallel, policies, provenance, recording, suite, video
 from robel_dm.tasks import base
 
 
@@ -152,6 +152,7 @@ def evaluate(
   workers: int = 1,
   tracker: str | None = None,
   ray_address: str | None = None,
+  record: str | None = None,
 ) -> dict[str, Any]:
   """Runs `episodes` episodes and returns the metrics.
 
@@ -181,6 +182,8 @@ def evaluate(
     ray_address: run the episodes as tasks of a Ray cluster: its address
       ('auto' for the one this machine belongs to), or 'local' to start
       one here; the records equal a serial run's.
+    record: record every timestep into this recording directory
+      (`robel_dm.recording`; checked before anything moves).
     tracker: with `device_path`, a D'Kitty's motion tracker as a spec
       (`robel_dm.hardware.tracker_spec`), e.g.
       'natnet:10.0.0.5,rigid_body=1,target=2'.
@@ -198,7 +201,7 @@ def evaluate(
   if workers < 1:
     raise ValueError(f'workers must be >= 1, got {workers}')
   if (workers > 1 or ray_address) and (
-    callable(policy) or device_path or video_dir or seed is None
+    callable(policy) or device_path or video_dir or record or seed is None
   ):
     raise ValueError(
       'workers > 1 and ray_address need a simulated task, a seed, no video, '
@@ -219,6 +222,23 @@ def evaluate(
     guide=guide,
     tracker=tracker,
   )
+  if record is not None:
+    try:
+      env = recording.Recorder(
+        env,
+        record,
+        metadata={
+          'domain': domain,
+          'task': task,
+          'task_kwargs': task_kwargs or {},
+          'seed': seed,
+          'policy': policy if isinstance(policy, str) else repr(policy),
+          'device_path': device_path,
+        },
+      )
+    except recording.RecordingError:
+      env.close()
+      raise
   head = {
     'domain': domain,
     'task': task,
@@ -410,6 +430,9 @@ def _define_flags() -> None:
     'multicast=GROUP|unicast,data_port=N,local=ADDR,version=4.1,y_up=true].',
   )
   flags.DEFINE_string(
+    'record', None, 'Record every timestep into this directory.'
+  )
+  flags.DEFINE_string(
     'ray_address',
     None,
     "Run the episodes on a Ray cluster: its address, 'auto', or 'local' to "
@@ -527,6 +550,7 @@ def main(argv):
         workers=FLAGS.workers,
         tracker=FLAGS.tracker,
         ray_address=FLAGS.ray_address,
+        record=FLAGS.record,
       )
       finished.append(results)
       print(format_summary(results), flush=True)

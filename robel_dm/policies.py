@@ -43,6 +43,51 @@ class PolicyError(ValueError):
   """A policy file that is missing, malformed, or for another task."""
 
 
+REPLAY = 'replay:'
+
+
+class ReplayPolicy:
+  """The actions of a recording (`robel_dm.recording`), episode by episode.
+
+  Each reset starts the next recorded episode; each step returns the action
+  recorded for it. With the recording's seed a simulated episode replays
+  exactly.
+  """
+
+  def __init__(self, directory: str, domain: str | None, task: str | None):
+    from robel_dm import recording  # noqa: PLC0415 (pyarrow)
+
+    episodes = recording.read(directory)
+    if not episodes:
+      raise PolicyError(f'the recording {directory} has no episodes')
+    recorded = (
+      episodes[0].metadata.get('domain'),
+      episodes[0].metadata.get('task'),
+    )
+    if domain is not None and recorded != (domain, task):
+      raise PolicyError(
+        f'the recording {directory} is of {recorded[0]}/{recorded[1]}, not '
+        f'{domain}/{task}'
+      )
+    self._actions = [episode.steps['action'] for episode in episodes]
+    self._episode = -1
+    self._frame = 0
+
+  def __call__(self, timestep: dm_env.TimeStep) -> np.ndarray:
+    if timestep.first():
+      self._episode += 1
+      self._frame = 0
+    if self._episode >= len(self._actions):
+      raise PolicyError('the recording has no more episodes to replay')
+    actions = self._actions[self._episode]
+    self._frame += 1  # Row 0 is the reset; row k holds step k's action.
+    if self._frame >= len(actions):
+      raise PolicyError(
+        f'recorded episode {self._episode} ends after {len(actions) - 1} steps'
+      )
+    return actions[self._frame]
+
+
 class NumpyPolicy:
   """A trained deterministic actor, evaluated with numpy.
 
@@ -193,8 +238,9 @@ def make_policy(
   Args:
     name: 'random' (uniform in the action bounds), 'zero' (the centre of
       every joint's range), 'reference' (the task's scripted controller),
-      'baseline' (the shipped trained policy of the task), or the path of a
-      `policy.npz` or a Stable-Baselines3 `.zip`.
+      'baseline' (the shipped trained policy of the task), 'replay:DIR'
+      (a recording's actions), or the path of a `policy.npz` or a
+      Stable-Baselines3 `.zip`.
     env: an environment from `robel_dm.suite.load`.
     seed: seed of the random policy.
     domain: the environment's domain (for trained policies' task check).
@@ -224,6 +270,8 @@ def make_policy(
         f'policy "reference" is not available here: {error}'
       ) from error
     return lambda timestep: task_.reference_action(env.physics)
+  if name.startswith(REPLAY):
+    return ReplayPolicy(name[len(REPLAY) :], domain, task)
   if name == BASELINE:
     name = str(baseline_path(domain, task))
   path = pathlib.Path(name)

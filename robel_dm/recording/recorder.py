@@ -1,0 +1,166 @@
+"""A dm_env wrapper that records every timestep of a robel_dm environment."""
+
+import json
+import pathlib
+import time
+from typing import Any
+
+import dm_env
+import numpy as np
+
+from robel_dm import provenance
+from robel_dm.recording import format as format_lib
+
+
+def _value(value):
+  """A timestep value as a Parquet-friendly Python value."""
+  array = np.asarray(value)
+  if array.ndim == 0:
+    return array.item()
+  return array.astype(np.float64).ravel().tolist()
+
+
+class Recorder(dm_env.Environment):
+  """Records `env`'s timesteps into a recording directory as they happen.
+
+  Everything else (specs, `physics`, `task`, attributes) passes through to
+  the wrapped environment. `close()` finishes the open episode (marked
+  incomplete if it had not ended) and closes the environment.
+  """
+
+  def __init__(
+    self,
+    env: dm_env.Environment,
+    directory: str | pathlib.Path,
+    *,
+    metadata: dict[str, Any] | None = None,
+  ):
+    """Checks the directory and starts the recording.
+
+    Args:
+      env: a robel_dm environment (simulated or on a robot).
+      directory: the recording directory (created; episodes are added
+        after any already there).
+      metadata: what every episode's line records besides the task (e.g.
+        domain, task, task_kwargs, seed, policy, device_path).
+
+    Raises:
+      RecordingError: if the directory is not writable or the disk is full;
+        raised before the robot moves.
+    """
+    self._env = env
+    self._directory = pathlib.Path(directory)
+    format_lib.prepare(self._directory)
+    self._metadata = dict(metadata or {})
+    info = {
+      'format': format_lib.FORMAT,
+      'version': format_lib.VERSION,
+      'fps': 1 / env.control_timestep(),
+      'provenance': provenance.describe(),
+      'session': self._metadata,
+    }
+    try:
+      (self._directory / format_lib.INFO).write_text(json.dumps(info, indent=1))
+    except OSError as error:
+      raise format_lib.RecordingError(
+        f'cannot write {self._directory}: {error}'
+      ) from error
+    self._writer: format_lib.EpisodeWriter | None = None
+    self._frame = 0
+    self._start_wall = 0.0
+    self._last_action = None
+
+  def __getattr__(self, name):
+    return getattr(self._env, name)
+
+  # --- dm_env.Environment ----------------------------------------------------
+
+  def reset(self) -> dm_env.TimeStep:
+    self._finish(complete=False)
+    timestep = self._env.reset()
+    self._start_episode(timestep)
+    return timestep
+
+  def step(self, action) -> dm_env.TimeStep:
+    timestep = self._env.step(action)
+    if timestep.first():  # dm_env resets on a step after the last one.
+      self._finish(complete=False)
+      self._start_episode(timestep)
+      return timestep
+    if self._writer is not None:
+      self._record(timestep, action)
+      if timestep.last():
+        self._finish(complete=True)
+    return timestep
+
+  def _start_episode(self, timestep: dm_env.TimeStep) -> None:
+    index = format_lib.next_index(self._directory)
+    self._writer = format_lib.EpisodeWriter(self._directory, index)
+    self._frame = 0
+    self._start_wall = time.time()
+    self._record(timestep, action=None)
+
+  def observation_spec(self):
+    return self._env.observation_spec()
+
+  def action_spec(self):
+    return self._env.action_spec()
+
+  def reward_spec(self):
+    return self._env.reward_spec()
+
+  def discount_spec(self):
+    return self._env.discount_spec()
+
+  def close(self) -> None:
+    try:
+      self._finish(complete=False)
+    finally:
+      self._env.close()
+
+  # --- Recording -------------------------------------------------------------
+
+  def _record(self, timestep: dm_env.TimeStep, action) -> None:
+    env = self._env
+    size = env.action_spec().shape[0]
+    row = {
+      'episode_index': self._writer.index,
+      'frame_index': self._frame,
+      'timestamp': float(env.physics.data.time),
+      'wall_time': time.time(),
+      'step_type': int(timestep.step_type),
+      'action': ([float('nan')] * size if action is None else _value(action)),
+      'joint_targets': _value(env.physics.bind(env.task.robot.actuators).ctrl),
+      'next.reward': float('nan')
+      if timestep.reward is None
+      else float(timestep.reward),
+      'discount': float('nan')
+      if timestep.discount is None
+      else float(timestep.discount),
+      'next.done': bool(timestep.last()),
+    }
+    for key, value in timestep.observation.items():
+      row[f'observation.{key}'] = _value(value)
+    for name, value in env.task.reward_terms.items():
+      row[f'reward_terms.{name}'] = float(value)
+    robot = getattr(env, 'robot', None)  # A HardwareEnvironment's motors.
+    if robot is not None:
+      row['motor.position'] = robot.positions.tolist()
+      row['motor.velocity'] = robot.velocities.tolist()
+      row['motor.current'] = robot.currents.tolist()
+      row['motor.timestamp'] = time.monotonic()
+    self._writer.add(row)
+    self._frame += 1
+
+  def _finish(self, complete: bool) -> None:
+    writer, self._writer = self._writer, None
+    if writer is None:
+      return
+    writer.finish(
+      {
+        **self._metadata,
+        'episode_index': writer.index,
+        'complete': complete,
+        'start_time': self._start_wall,
+      }
+    )

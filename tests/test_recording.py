@@ -1,0 +1,172 @@
+"""Recordings: every timestep on disk as it happens, read back, replayed."""
+
+import json
+import pathlib
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip('pyarrow')
+
+from robel_dm import evaluate, policies, recording  # noqa: E402
+
+
+def test_every_field_round_trips_in_simulation(tmp_path):
+  results = evaluate.evaluate(
+    'dkitty', 'stand_fixed', 2, policy='zero', seed=3, record=str(tmp_path)
+  )
+  episodes = recording.read(tmp_path)
+  assert [e.metadata['complete'] for e in episodes] == [True, True]
+  assert [e.metadata['seed'] for e in episodes] == [3, 3]
+  for episode, record in zip(episodes, results['records'], strict=True):
+    steps = episode.steps
+    assert len(episode) == record['steps'] + 1  # The reset's row too.
+    assert np.isnan(steps['next.reward'][0])
+    assert np.nansum(steps['next.reward']) == pytest.approx(record['return'])
+    assert bool(steps['observation.success'][-1]) == record['success']
+    assert steps['observation.kitty_qpos'].shape == (len(episode), 12)
+    assert steps['action'].shape == (len(episode), 12)
+    assert steps['joint_targets'].shape == (len(episode), 12)
+    assert list(steps['frame_index']) == list(range(len(episode)))
+    assert steps['next.done'][-1] and not steps['next.done'][:-1].any()
+    terms = [k for k in steps if k.startswith('reward_terms.')]
+    total = sum(steps[k][1:] for k in terms)
+    np.testing.assert_allclose(total, steps['next.reward'][1:])
+  info = json.loads((tmp_path / 'meta/info.json').read_text())
+  assert info['format'] == 'robel_dm-recording' and info['fps'] == 10
+
+
+def test_parquet_files_open_with_pyarrow_alone(tmp_path):
+  import pyarrow.parquet as pq  # noqa: PLC0415
+
+  evaluate.evaluate('dclaw', 'pose_fixed', 1, policy='zero', record=tmp_path)
+  (path,) = (tmp_path / 'data/chunk-000').glob('*.parquet')
+  table = pq.read_table(path)
+  assert {'episode_index', 'frame_index', 'timestamp', 'action',
+          'next.reward', 'next.done', 'observation.qpos'} <= set(
+    table.column_names
+  )  # fmt: skip
+
+
+def test_motor_state_is_recorded_on_the_virtual_bus(tmp_path):
+  pytest.importorskip('dynamixel_sdk')
+  evaluate.evaluate(
+    'dclaw', 'pose_fixed', 1, policy='zero', device_path='virtual',
+    record=str(tmp_path),
+  )  # fmt: skip
+  (episode,) = recording.read(tmp_path)
+  for column in ('motor.position', 'motor.velocity', 'motor.current'):
+    assert episode.steps[column].shape == (len(episode), 9)
+    assert np.isfinite(episode.steps[column]).all()
+  np.testing.assert_allclose(
+    episode.steps['motor.position'], episode.steps['observation.qpos']
+  )
+  assert episode.metadata['device_path'] == 'virtual'
+
+
+def test_replay_reproduces_a_simulated_episode_exactly(tmp_path):
+  evaluate.evaluate(
+    'dclaw', 'turn_random', 2, policy='random', seed=5, record=tmp_path / 'a'
+  )
+  evaluate.evaluate(
+    'dclaw', 'turn_random', 2, policy=f'replay:{tmp_path / "a"}', seed=5,
+    record=tmp_path / 'b',
+  )  # fmt: skip
+  for first, again in zip(
+    recording.read(tmp_path / 'a'), recording.read(tmp_path / 'b'), strict=True
+  ):
+    for key in ('observation.claw_qpos', 'observation.target_error',
+                'next.reward'):  # fmt: skip
+      np.testing.assert_array_equal(first.steps[key], again.steps[key])
+  with pytest.raises(policies.PolicyError, match='recording .* is of'):
+    evaluate.evaluate(
+      'dclaw', 'pose_fixed', 1, policy=f'replay:{tmp_path / "a"}'
+    )
+
+
+def test_demonstrations_from_the_reference_controller_load(tmp_path):
+  evaluate.evaluate(
+    'dclaw', 'pose_random', 3, policy='reference', record=str(tmp_path)
+  )
+  episodes = recording.read(tmp_path)
+  assert len(episodes) == 3 and all(e.metadata['complete'] for e in episodes)
+  assert all(e.metadata['policy'] == 'reference' for e in episodes)
+
+
+def test_an_unwritable_directory_fails_before_the_first_step(tmp_path):
+  blocker = tmp_path / 'file'
+  blocker.write_text('not a directory')
+  with pytest.raises(recording.RecordingError, match='cannot write'):
+    evaluate.evaluate('dclaw', 'pose_fixed', 1, record=str(blocker / 'rec'))
+
+
+def test_a_full_disk_fails_before_the_first_step(tmp_path, monkeypatch):
+  import collections  # noqa: PLC0415
+  import shutil  # noqa: PLC0415
+
+  usage = collections.namedtuple('usage', 'total used free')
+  monkeypatch.setattr(shutil, 'disk_usage', lambda path: usage(1, 1, 1000))
+  with pytest.raises(recording.RecordingError, match='MiB free'):
+    evaluate.evaluate('dclaw', 'pose_fixed', 1, record=str(tmp_path))
+
+
+def test_kill_9_keeps_every_step_older_than_a_second(tmp_path):
+  code = f"""
+import time, numpy as np
+from robel_dm import suite, recording
+env = recording.Recorder(suite.load('dclaw', 'pose_fixed', seed=0),
+                         {str(tmp_path)!r}, metadata={{'task': 'pose_fixed'}})
+timestep = env.reset()
+while not timestep.last():  # One full episode first.
+  timestep = env.step(np.zeros(9))
+env.close()
+# Then an episode without end, cut by the kill.
+env = recording.Recorder(
+  suite.load('dclaw', 'pose_fixed', seed=0, time_limit=float('inf')),
+  {str(tmp_path)!r}, metadata={{'task': 'pose_fixed'}})
+env.reset()
+steps = 0
+while True:
+  env.step(np.zeros(9))
+  steps += 1
+  print(steps, time.monotonic(), flush=True)
+  time.sleep(0.02)
+"""
+  process = subprocess.Popen(
+    [sys.executable, '-c', code], stdout=subprocess.PIPE, text=True
+  )
+  lines = []
+  start = time.monotonic()
+  while time.monotonic() - start < 30:
+    lines.append(process.stdout.readline().split())
+    if len(lines) > 1 and float(lines[-1][1]) - float(lines[0][1]) > 2.5:
+      break
+  killed_at = time.monotonic()
+  process.send_signal(signal.SIGKILL)
+  process.wait(10)
+  # Steps the child completed more than a second before the kill.
+  old = [int(n) for n, t in lines if killed_at - float(t) > 1.0]
+  episodes = recording.read(tmp_path)
+  assert episodes[0].metadata['complete'] and len(episodes[0]) == 81
+  partial = episodes[1]
+  assert partial.metadata['complete'] is False
+  assert len(partial) - 1 >= max(old)  # Minus the reset's row.
+
+
+def test_the_command_line_summarizes_a_recording(tmp_path):
+  evaluate.evaluate('dclaw', 'pose_fixed', 2, policy='zero', record=tmp_path)
+  result = subprocess.run(
+    [sys.executable, '-m', 'robel_dm.recording', str(tmp_path)],
+    capture_output=True, text=True, check=False,
+  )  # fmt: skip
+  assert result.returncode == 0, result.stderr
+  assert '2 episodes, 162 steps' in result.stdout
+  bad = subprocess.run(
+    [sys.executable, '-m', 'robel_dm.recording', str(pathlib.Path('/nope'))],
+    capture_output=True, text=True, check=False,
+  )  # fmt: skip
+  assert bad.returncode == 2 and 'not a robel_dm recording' in bad.stderr
