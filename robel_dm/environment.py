@@ -162,6 +162,7 @@ class Environment(composer.Environment):
     self,
     task: composer.Task,
     physics_factory: PhysicsFactory | None = None,
+    control_delay: float = 0.0,
     **kwargs,
   ):
     """Initializes the environment.
@@ -170,12 +171,28 @@ class Environment(composer.Environment):
       task: the task.
       physics_factory: builds the physics of a compiled model;
         `mjcf.Physics.from_mjcf_model` (simulation) by default.
+      control_delay: simulated delay between an action and the actuators
+        acting on it, s (a calibrated servo delay; see `robel_dm.calibration`).
+        The previous targets hold for this long (rounded to whole physics
+        steps) into each control step.
       **kwargs: `composer.Environment` arguments.
+
+    Raises:
+      ValueError: if `control_delay` is negative or not below one control
+        step.
     """
     kwargs.setdefault('recompile_mjcf_every_episode', False)
     kwargs.setdefault('strip_singleton_obs_buffer_dim', True)
     self._batch_substeps = False
     self._closed = False
+    substeps = task.physics_steps_per_control_step
+    delay = control_delay / task.physics_timestep
+    self._delay_substeps = round(delay) if 0 <= delay < substeps else -1
+    if not 0 <= self._delay_substeps < substeps:  # Also NaN.
+      raise ValueError(
+        f'control_delay must be >= 0 and below one control step '
+        f'({task.control_timestep} s), got {control_delay}'
+      )
     self._physics_factory = physics_factory or mjcf.Physics.from_mjcf_model
     super().__init__(task, **kwargs)
     # The constructor has compiled the model. composer compiles it again at
@@ -219,8 +236,20 @@ class Environment(composer.Environment):
         return False
     return self._observation_updater.samples_last_substep_only()
 
+  @property
+  def control_delay(self) -> float:
+    """The simulated action delay, s (whole physics steps)."""
+    return self._delay_substeps * self._task.physics_timestep
+
   def _prepare_batching(self) -> None:
     self._batch_substeps = self._substeps_are_unobserved()
+    if self._delay_substeps and not self._batch_substeps:
+      raise ValueError(
+        'a control_delay needs a task whose substeps are unobserved'
+      )
+    if self._delay_substeps:
+      ctrl = self._physics.data.ctrl
+      self._held_ctrl, self._next_ctrl = ctrl.copy(), ctrl.copy()
     # With no entity or extra step hooks, call the task's hooks directly.
     self._task_hooks_only = not any(
       hook.entity_hooks or hook.extra_hooks
@@ -258,6 +287,8 @@ class Environment(composer.Environment):
       return super().step(action)
 
     physics, random_state = self._physics_proxy, self._random_state
+    if self._delay_substeps:
+      np.copyto(self._held_ctrl, self._physics.data.ctrl)
     if self._task_hooks_only:
       self._task.before_step(physics, action, random_state)
     else:
@@ -266,7 +297,10 @@ class Environment(composer.Environment):
     try:
       # The legacy step of all substeps at once (on hardware: one exchange
       # with the motors); it raises on MuJoCo warnings, as composer's does.
-      self._physics.step(self._n_sub_steps)
+      if self._delay_substeps:
+        self._step_delayed()
+      else:
+        self._physics.step(self._n_sub_steps)
       physics_is_divergent = False
     except control.PhysicsError as error:
       if self._raise_exception_on_physics_error:
@@ -296,3 +330,13 @@ class Environment(composer.Environment):
         dm_env.StepType.LAST, reward, discount, observation
       )
     return dm_env.TimeStep(dm_env.StepType.MID, reward, discount, observation)
+
+  def _step_delayed(self) -> None:
+    """The control step's substeps with the previous targets held for the
+    first `_delay_substeps`."""
+    ctrl = self._physics.data.ctrl
+    np.copyto(self._next_ctrl, ctrl)
+    np.copyto(ctrl, self._held_ctrl)
+    self._physics.step(self._delay_substeps)
+    np.copyto(ctrl, self._next_ctrl)
+    self._physics.step(self._n_sub_steps - self._delay_substeps)

@@ -8,21 +8,31 @@ performance-critical settings (compile the MJCF once, batch substeps, strip
 singleton observation dimensions) are the same for every task.
 """
 
+from collections.abc import Callable
 import difflib
 import math
+import os
 from typing import Any
 
+from robel_dm import calibration as calibration_lib
 from robel_dm import constants, registry
 from robel_dm.environment import Environment
 from robel_dm.tasks import (  # noqa: F401  (imported to register the tasks)
+  base,
   dclaw_pose,
   dclaw_screw,
   dclaw_turn,
   dkitty_orient,
   dkitty_stand,
   dkitty_walk,
+  excitation,
 )
 
+# A calibration: a `calibration.Calibration` or the path of its file.
+Dynamics = calibration_lib.Calibration | str | os.PathLike
+
+# `device_path` of the in-process virtual bus (hardware.environment's).
+_VIRTUAL_DEVICE = 'virtual'
 # Half a physics step, s: absorbs rounding in the accumulated physics time.
 _TIME_LIMIT_MARGIN = constants.PHYSICS_TIMESTEP / 2
 
@@ -76,6 +86,7 @@ def load(
   reset: str | None = None,
   tracker=None,
   guide: str | None = None,
+  dynamics: Dynamics | None = None,
   domain_name: str | None = None,
   task_name: str | None = None,
   visualize_reward: bool = False,
@@ -103,6 +114,10 @@ def load(
     guide: with `device_path`, for D'Claw Turn/Screw: ROBEL's guide motor
       'show's the goal, or ('interactive') a person turns it to set the
       goal.
+    dynamics: a calibration (file path or `calibration.Calibration`, e.g.
+      from `python -m robel_dm.sysid fit`) of the simulated robot's joint
+      dynamics and control delay. With device_path='virtual' it calibrates
+      the simulation behind the virtual bus; a real robot has its own.
     domain_name: `dm_control.suite.load`'s name for `domain`.
     task_name: `dm_control.suite.load`'s name for `task`.
     visualize_reward: accepted for `dm_control.suite` code; robel_dm shows
@@ -113,6 +128,8 @@ def load(
 
   Raises:
     ValueError: for an unknown domain, task or task argument.
+    calibration.CalibrationError: for a malformed calibration or one of
+      another robot.
   """
   del visualize_reward  # See the docstring.
   domain = _one_of(domain, domain_name, 'domain')
@@ -128,14 +145,88 @@ def load(
         f'(suite.load({owners[0]!r}, {task!r}))'
       )
     raise _unknown(f'{domain} task', task, tasks)
-  try:
-    task_instance = tasks[task](**(task_kwargs or {}))
-  except TypeError as error:
-    # Only a wrong argument is the caller's mistake; re-raise anything else.
-    message = str(error)
-    if 'keyword argument' not in message:
-      raise
-    raise ValueError(f'bad task_kwargs for {domain}/{task}: {error}') from error
+
+  def make_task() -> base.RobelTask:
+    try:
+      return tasks[task](**(task_kwargs or {}))
+    except TypeError as error:
+      # Only a wrong argument is the caller's mistake; re-raise anything else.
+      if 'keyword argument' not in str(error):
+        raise
+      raise ValueError(
+        f'bad task_kwargs for {domain}/{task}: {error}'
+      ) from error
+
+  return _environment(
+    domain,
+    make_task,
+    seed=seed,
+    time_limit=time_limit,
+    environment_kwargs=environment_kwargs,
+    device_path=device_path,
+    dynamics=dynamics,
+    hardware_options={
+      'robot_config': robot_config,
+      'reset': reset,
+      'tracker': tracker,
+      'guide': guide,
+    },
+  )
+
+
+def load_excitation(
+  domain: str,
+  duration: float,
+  *,
+  seed: int | None = None,
+  device_path: str | None = None,
+  robot_config=None,
+  dynamics: Dynamics | None = None,
+) -> Environment:
+  """The joint-excitation environment of system identification.
+
+  The robot alone (the D'Claw in its pose station, the D'Kitty on a stand),
+  following ROBEL-normalized joint targets at 50 Hz; see
+  `robel_dm.tasks.excitation` and docs/sysid.md.
+
+  Args:
+    domain: 'dclaw' or 'dkitty'.
+    duration: episode length, s.
+    seed: the environment's seed.
+    device_path: a robot's bus (or 'virtual'), as for `load`.
+    robot_config: with `device_path`, as for `load`.
+    dynamics: a calibration of the simulated robot, as for `load`.
+
+  Returns:
+    A `dm_env.Environment`.
+  """
+  if domain not in excitation.DOMAINS:
+    raise _unknown('domain', domain, excitation.DOMAINS)
+  return _environment(
+    domain,
+    lambda: excitation.JointExcitation(domain, duration),
+    seed=seed,
+    time_limit=None,
+    environment_kwargs=None,
+    device_path=device_path,
+    dynamics=dynamics,
+    hardware_options={'robot_config': robot_config},
+  )
+
+
+def _environment(
+  domain: str,
+  make_task: Callable[[], base.RobelTask],
+  *,
+  seed,
+  time_limit,
+  environment_kwargs,
+  device_path,
+  dynamics,
+  hardware_options,
+) -> Environment:
+  """Wraps a new task in a simulated or hardware environment."""
+  task_instance = make_task()
   if time_limit is None:
     time_limit = task_instance.time_limit
   elif not time_limit > 0:  # Also NaN.
@@ -147,20 +238,30 @@ def load(
   # physics timesteps fall just short of round numbers (40 x 0.1 s sums to
   # 3.9999...): without this margin a 4 s limit would run 41 steps.
   time_limit -= _TIME_LIMIT_MARGIN
-  hardware_options = {
-    'robot_config': robot_config,
-    'reset': reset,
-    'tracker': tracker,
-    'guide': guide,
-  }
+  calibration = None
+  if dynamics is not None:
+    calibration = calibration_lib.resolve(dynamics)
+    if device_path not in (None, _VIRTUAL_DEVICE):
+      raise ValueError(
+        f'dynamics= calibrates a simulated robot; the robot on '
+        f'{device_path} has its own (device_path=None or {_VIRTUAL_DEVICE!r})'
+      )
   if device_path is None:
     given = [name for name, value in hardware_options.items() if value]
     if given:
       raise ValueError(f'{", ".join(given)} need a device_path (a robot)')
+    control_delay = 0.0
+    if calibration is not None:
+      robot = task_instance.robot
+      calibration_lib.apply_to_model(
+        calibration, domain, robot.joints, robot.actuators
+      )
+      control_delay = calibration.control_delay
     return Environment(
       task_instance,
       time_limit=time_limit,
       random_state=seed,
+      control_delay=control_delay,
       **(environment_kwargs or {}),
     )
   # Imported here: the hardware layer needs the optional dynamixel_sdk.
@@ -168,8 +269,15 @@ def load(
 
   def simulated_scene() -> Environment:
     # The simulated robot behind a virtual bus: the same task, untimed.
-    return load(
-      domain, task, seed=seed, task_kwargs=task_kwargs, time_limit=math.inf
+    return _environment(
+      domain,
+      make_task,
+      seed=seed,
+      time_limit=math.inf,
+      environment_kwargs=None,
+      device_path=None,
+      dynamics=calibration,
+      hardware_options={},
     )
 
   return hardware.make_environment(

@@ -84,6 +84,12 @@ class RobotConfig:
   def joint_ids(self) -> tuple[int, ...]:
     return tuple(motor.id for motor in self.joints)
 
+  def describe(self) -> dict[str, Any]:
+    """The configuration as JSON-ready data (for recordings)."""
+    data = dataclasses.asdict(self)
+    data['groups'] = {k: list(v) for k, v in self.groups.items()}
+    return data
+
   def auxiliary_motor(self, name: str) -> Motor | None:
     for motor in self.auxiliary:
       if motor.name == name:

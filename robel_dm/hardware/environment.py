@@ -39,6 +39,7 @@ class Connection:
 
   Attributes:
     robot: the motors.
+    robot_config: their configuration.
     clock: paces the control loop (wall or simulated time).
     auxiliary_joints: auxiliary motor name -> the model joint it measures
       (None for the guide, which measures none).
@@ -53,6 +54,7 @@ class Connection:
   """
 
   robot: robot_lib.HardwareRobot
+  robot_config: config_lib.RobotConfig
   clock: clock_lib.Clock
   auxiliary_joints: dict
   joint_limits: dict | None
@@ -78,6 +80,11 @@ class HardwareEnvironment(environment_lib.Environment):
   @property
   def robot(self) -> robot_lib.HardwareRobot:
     return self._connection.robot
+
+  @property
+  def robot_config(self) -> config_lib.RobotConfig:
+    """The motors' IDs and calibration."""
+    return self._connection.robot_config
 
   @property
   def virtual_bus(self):
@@ -288,6 +295,7 @@ def make_environment(
       clock = clock_lib.WallClock()
     connection = Connection(
       robot=robot,
+      robot_config=robot_config,
       clock=clock,
       auxiliary_joints=auxiliary_joints,
       joint_limits=robot_config.limits,

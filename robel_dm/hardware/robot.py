@@ -1,12 +1,20 @@
 """A robot's motors in joint space: calibrated state, limited goals, health."""
 
 import dataclasses
+import time
 
 import numpy as np
 
 from robel_dm.hardware import config as config_lib
 from robel_dm.hardware import control_table as table
 from robel_dm.hardware import dynamixel
+
+# One sync read covers input voltage and temperature (addresses 144..146).
+_HEALTH_BLOCK = table.Item(
+  table.PRESENT_INPUT_VOLTAGE.address,
+  table.PRESENT_TEMPERATURE.address + 1 - table.PRESENT_INPUT_VOLTAGE.address,
+  writable=False,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,6 +67,11 @@ class HardwareRobot:
     self.positions = np.zeros(len(motors))  # Joint angles, rad.
     self.velocities = np.zeros(len(motors))  # rad/s.
     self.currents = np.zeros(len(motors))  # mA.
+    # Health, read every `check_every` steps (see `check_health`).
+    self.temperatures = np.zeros(len(motors))  # C.
+    self.voltages = np.zeros(len(motors))  # Input voltage, V.
+    self.hardware_errors = np.zeros(len(motors), dtype=np.int64)  # Bits.
+    self.health_time = float('nan')  # Clock (time.monotonic) of that read.
 
   @property
   def client(self) -> dynamixel.DynamixelClient:
@@ -181,7 +194,9 @@ class HardwareRobot:
     self._client.set_torque(ids, enabled)
 
   def check_health(self, force: bool = False) -> None:
-    """Every `check_every` calls (or now), reads error and temperature.
+    """Every `check_every` calls (or now), reads the hardware-error bits,
+    input voltage and temperature into `hardware_errors`, `voltages` and
+    `temperatures`.
 
     Raises:
       dynamixel.MotorFaultError: on a hardware error or over-temperature.
@@ -190,8 +205,16 @@ class HardwareRobot:
     if not force and self._steps_since_check < self._health.check_every:
       return
     self._steps_since_check = 0
+    self.health_time = time.monotonic()
+    # A motor with an error stops the robot here; otherwise every bit is 0.
     self._client.raise_on_hardware_errors()
-    temperatures = self._client.sync_read_register(table.PRESENT_TEMPERATURE)
+    self.hardware_errors[:] = 0
+    block = self._client.sync_read_register(_HEALTH_BLOCK)
+    ids = self.motor_ids
+    values = np.array([block[i] for i in ids], dtype=np.int64)
+    self.voltages[:] = (values & 0xFFFF) * table.VOLTS_PER_UNIT
+    self.temperatures[:] = values >> 16
+    temperatures = dict(zip(ids, self.temperatures.tolist(), strict=True))
     hot = {
       i: t for i, t in temperatures.items() if t > self._health.max_temperature
     }

@@ -22,9 +22,6 @@ from robel_dm.hardware import control_table as table
 # holding a goal (the valve during resets); it has no actuator in the model.
 _AUXILIARY_KP = 2.0
 _AUXILIARY_KV = 0.1
-# Torque per ampere used to report a current from the actuator force, N m/A
-# (an XH430-V350 stalls at about 4.8 N m and 2.2 A).
-_TORQUE_PER_AMPERE = 2.2
 
 
 class SimulatedRobot:
@@ -94,6 +91,12 @@ class SimulatedRobot:
     self._model.actuator_ctrllimited[:] = 0
     self._auxiliary_goals: dict[int, float] = {}  # dof -> goal, rad.
     self._root = task_instance.root_joint
+    # A calibrated control delay of the scene: goals take effect this many
+    # physics steps after they arrive (FIFO of [steps left, actuator, goal]).
+    self._delay_steps = round(
+      self._env.control_delay / self._model.opt.timestep
+    )
+    self._pending_goals: list[list] = []
     self._realtime = realtime
     self._last_wall_time = time.monotonic()
 
@@ -128,7 +131,10 @@ class SimulatedRobot:
           else:
             self._auxiliary_goals.pop(dof, None)
           continue
-        self._data.ctrl[actuator] = goal
+        if self._delay_steps:
+          self._pending_goals.append([self._delay_steps, actuator, goal])
+        else:
+          self._data.ctrl[actuator] = goal
         # Torque off: the servo no longer holds (no position gain).
         kp = self._nominal_gain[actuator] if servo.torque_enabled else 0.0
         self._model.actuator_gainprm[actuator, 0] = kp
@@ -149,7 +155,7 @@ class SimulatedRobot:
         velocity = self._data.qvel[dof] / motor.scale
         force = 0.0 if actuator is None else self._data.actuator_force[actuator]
         unit = table.MODELS.get(servo.model_number, ('', 2.69))[1]
-        current = 1000.0 * force / _TORQUE_PER_AMPERE / motor.scale / unit
+        current = 1000.0 * force / table.TORQUE_PER_AMPERE / motor.scale / unit
         # The servo's firmware caps its current at the Current Limit.
         limit = servo.get(table.CURRENT_LIMIT)
         current = min(max(current, -limit), limit)
@@ -168,6 +174,22 @@ class SimulatedRobot:
 
   def _advance_locked(self, seconds: float) -> None:
     steps = int(round(seconds / self._model.opt.timestep))
+    pending = self._pending_goals
+    while pending and pending[0][0] <= steps:
+      # Up to the next delayed goal, then apply it.
+      due = pending[0][0]
+      self._step_locked(due)
+      steps -= due
+      for goal in pending:
+        goal[0] -= due
+      while pending and pending[0][0] <= 0:
+        _, actuator, goal = pending.pop(0)
+        self._data.ctrl[actuator] = goal
+    for goal in pending:
+      goal[0] -= steps
+    self._step_locked(steps)
+
+  def _step_locked(self, steps: int) -> None:
     if steps <= 0:
       return
     if not self._auxiliary_goals:

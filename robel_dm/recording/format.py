@@ -208,6 +208,7 @@ def read(directory: str | pathlib.Path) -> list[Episode]:
         continue
       metadata = {
         **info.get('session', {}),
+        **({'robot': info['robot']} if info.get('robot') else {}),
         'episode_index': index,
         'complete': False,
         'length': table.num_rows,

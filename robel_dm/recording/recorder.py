@@ -52,12 +52,15 @@ class Recorder(dm_env.Environment):
     self._directory = pathlib.Path(directory)
     format_lib.prepare(self._directory)
     self._metadata = dict(metadata or {})
+    config = getattr(env, 'robot_config', None)  # A robot's motors.
+    self._robot_config = {} if config is None else config.describe()
     info = {
       'format': format_lib.FORMAT,
       'version': format_lib.VERSION,
       'fps': 1 / env.control_timestep(),
       'provenance': provenance.describe(),
       'session': self._metadata,
+      'robot': self._robot_config,
     }
     try:
       (self._directory / format_lib.INFO).write_text(json.dumps(info, indent=1))
@@ -82,7 +85,12 @@ class Recorder(dm_env.Environment):
     return timestep
 
   def step(self, action) -> dm_env.TimeStep:
-    timestep = self._env.step(action)
+    try:
+      timestep = self._env.step(action)
+    except BaseException as error:
+      # A fault (or Ctrl-C) ends the episode: say why in its metadata.
+      self._finish(complete=False, error=f'{type(error).__name__}: {error}')
+      raise
     if timestep.first():  # dm_env resets on a step after the last one.
       self._finish(complete=False)
       self._start_episode(timestep)
@@ -149,18 +157,25 @@ class Recorder(dm_env.Environment):
       row['motor.velocity'] = robot.velocities.tolist()
       row['motor.current'] = robot.currents.tolist()
       row['motor.timestamp'] = time.monotonic()
+      row['motor.temperature'] = robot.temperatures.tolist()
+      row['motor.voltage'] = robot.voltages.tolist()
+      row['motor.hardware_error'] = robot.hardware_errors.tolist()
+      row['motor.health_timestamp'] = robot.health_time
     self._writer.add(row)
     self._frame += 1
 
-  def _finish(self, complete: bool) -> None:
+  def _finish(self, complete: bool, error: str | None = None) -> None:
     writer, self._writer = self._writer, None
     if writer is None:
       return
-    writer.finish(
-      {
-        **self._metadata,
-        'episode_index': writer.index,
-        'complete': complete,
-        'start_time': self._start_wall,
-      }
-    )
+    metadata = {
+      **self._metadata,
+      'episode_index': writer.index,
+      'complete': complete,
+      'start_time': self._start_wall,
+    }
+    if self._robot_config:
+      metadata['robot'] = self._robot_config
+    if error is not None:
+      metadata['error'] = error
+    writer.finish(metadata)

@@ -1,0 +1,218 @@
+"""Calibrated joint dynamics: what system identification fits and the
+simulation applies.
+
+A calibration file (JSON) holds, per joint of one robot, the simulation
+parameters that matter most for sim-to-real transfer, in SI units, and one
+control delay for the whole robot:
+
+    {
+      "format": "robel_dm-calibration", "version": 1,
+      "domain": "dclaw",
+      "control_delay": 0.0075,
+      "joints": {
+        "FFJ10": {"kp": 2.3, "damping": 0.12, "frictionloss": 0.02,
+                  "armature": 0.0011},
+        ...
+      },
+      "fit": {...}
+    }
+
+  kp: the position servo's gain, N m/rad (MuJoCo `<position kp>`).
+  damping: joint damping, N m s/rad.
+  frictionloss: joint dry friction, N m.
+  armature: the motor's reflected inertia added to the joint, kg m^2.
+  control_delay: seconds between a goal being sent and the servo acting on
+    it (simulated in whole physics steps, below one control step).
+  fit: how the values were fitted (optional, informative only).
+
+A joint may give any subset of the four parameters, and joints not listed
+keep the model's values. `python -m robel_dm.sysid fit` writes these files;
+`suite.load(..., dynamics=FILE)` applies one (see docs/sysid.md).
+"""
+
+import dataclasses
+import json
+import math
+import os
+import pathlib
+from typing import Any
+
+from dm_control import mjcf
+
+FORMAT = 'robel_dm-calibration'
+VERSION = 1
+# The fitted joint parameters, in file order.
+PARAMETERS = ('kp', 'damping', 'frictionloss', 'armature')
+# The MJCF element and attribute each parameter sets.
+_MJCF_ATTRIBUTE = {
+  'kp': ('actuator', 'kp'),
+  'damping': ('joint', 'damping'),
+  'frictionloss': ('joint', 'frictionloss'),
+  'armature': ('joint', 'armature'),
+}
+
+
+class CalibrationError(ValueError):
+  """A calibration file is malformed or does not fit the robot (named)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Calibration:
+  """Joint dynamics of one robot.
+
+  Attributes:
+    domain: the robot, 'dclaw' or 'dkitty'.
+    joints: joint name -> {parameter name -> value} (see `PARAMETERS`).
+    control_delay: goal-to-servo delay, s.
+    fit: how it was fitted (free-form; not applied).
+    source: where it was read from (for messages).
+  """
+
+  domain: str
+  joints: dict[str, dict[str, float]]
+  control_delay: float = 0.0
+  fit: dict[str, Any] = dataclasses.field(default_factory=dict)
+  source: str = '<memory>'
+
+  def to_dict(self) -> dict[str, Any]:
+    return {
+      'format': FORMAT,
+      'version': VERSION,
+      'domain': self.domain,
+      'control_delay': self.control_delay,
+      'joints': self.joints,
+      'fit': self.fit,
+    }
+
+
+def _number(value, where: str, minimum: float, strict: bool) -> float:
+  if isinstance(value, bool) or not isinstance(value, int | float):
+    raise CalibrationError(f'{where} must be a number, got {value!r}')
+  value = float(value)
+  if not math.isfinite(value) or value < minimum or (strict and value == 0):
+    bound = f'> {minimum}' if strict else f'>= {minimum}'
+    raise CalibrationError(f'{where} must be finite and {bound}, got {value}')
+  return value
+
+
+def from_dict(data: Any, source: str = '<memory>') -> Calibration:
+  """Validates a calibration's JSON object.
+
+  Raises:
+    CalibrationError: naming the source and the offending entry.
+  """
+  if not isinstance(data, dict):
+    raise CalibrationError(f'{source}: a calibration is a JSON object')
+  if data.get('format') != FORMAT:
+    raise CalibrationError(
+      f'{source}: not a robel_dm calibration (format must be {FORMAT!r})'
+    )
+  if data.get('version') != VERSION:
+    raise CalibrationError(
+      f'{source}: calibration version {data.get("version")!r}; this robel_dm '
+      f'reads version {VERSION}'
+    )
+  domain = data.get('domain')
+  if not isinstance(domain, str):
+    raise CalibrationError(f'{source}: "domain" must name the robot')
+  joints = data.get('joints')
+  if not isinstance(joints, dict) or not joints:
+    raise CalibrationError(f'{source}: "joints" must map joint names to values')
+  parsed = {}
+  for name, values in joints.items():
+    where = f'{source}: joints.{name}'
+    if not isinstance(values, dict):
+      raise CalibrationError(f'{where} must be an object')
+    unknown = sorted(set(values) - set(PARAMETERS))
+    if unknown:
+      raise CalibrationError(
+        f'{where}: unknown parameters {unknown}; expected some of '
+        f'{list(PARAMETERS)}'
+      )
+    parsed[name] = {
+      key: _number(values[key], f'{where}.{key}', 0.0, strict=key == 'kp')
+      for key in PARAMETERS
+      if key in values
+    }
+  delay = _number(
+    data.get('control_delay', 0.0), f'{source}: control_delay', 0.0, False
+  )
+  fit = data.get('fit', {})
+  if not isinstance(fit, dict):
+    raise CalibrationError(f'{source}: "fit" must be an object')
+  return Calibration(domain, parsed, delay, fit, source)
+
+
+def load(path: str | os.PathLike) -> Calibration:
+  """Reads a calibration file.
+
+  Raises:
+    CalibrationError: if it is missing, not JSON, or malformed.
+  """
+  path = pathlib.Path(path)
+  try:
+    data = json.loads(path.read_text())
+  except FileNotFoundError as error:
+    raise CalibrationError(f'no calibration file {path}') from error
+  except (OSError, ValueError) as error:
+    raise CalibrationError(
+      f'cannot read calibration {path}: {error}'
+    ) from error
+  return from_dict(data, source=str(path))
+
+
+def save(calibration: Calibration, path: str | os.PathLike) -> None:
+  """Writes a calibration file (atomically)."""
+  path = pathlib.Path(path)
+  partial = path.with_name(path.name + '.partial')
+  partial.write_text(json.dumps(calibration.to_dict(), indent=1) + '\n')
+  os.replace(partial, path)
+
+
+def resolve(dynamics) -> Calibration:
+  """A `Calibration`, or one read from a path."""
+  if isinstance(dynamics, Calibration):
+    return dynamics
+  if isinstance(dynamics, str | os.PathLike):
+    return load(dynamics)
+  raise CalibrationError(
+    f'dynamics must be a calibration file path or a Calibration, got '
+    f'{type(dynamics).__name__}'
+  )
+
+
+def apply_to_model(
+  calibration: Calibration,
+  domain: str,
+  joints: tuple[mjcf.Element, ...],
+  actuators: tuple[mjcf.Element, ...],
+) -> None:
+  """Writes the calibrated values into a robot's MJCF (before compiling).
+
+  Args:
+    calibration: the values.
+    domain: the robot's domain; must be the calibration's.
+    joints: the robot's actuated joints, in action order.
+    actuators: their position actuators, in the same order.
+
+  Raises:
+    CalibrationError: for another robot's calibration or unknown joints.
+  """
+  if calibration.domain != domain:
+    raise CalibrationError(
+      f'{calibration.source} calibrates a {calibration.domain}, not a {domain}'
+    )
+  elements = {
+    joint.name: {'joint': joint, 'actuator': actuator}
+    for joint, actuator in zip(joints, actuators, strict=True)
+  }
+  unknown = sorted(set(calibration.joints) - set(elements))
+  if unknown:
+    raise CalibrationError(
+      f'{calibration.source}: joints {unknown} are not {domain} joints '
+      f'{list(elements)}'
+    )
+  for name, values in calibration.joints.items():
+    for parameter, value in values.items():
+      kind, attribute = _MJCF_ATTRIBUTE[parameter]
+      setattr(elements[name][kind], attribute, value)

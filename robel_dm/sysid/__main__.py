@@ -1,0 +1,169 @@
+"""System identification from the command line.
+
+  python -m robel_dm.sysid excite --domain=dclaw --device_path=DEVICE \
+      --record=DIR [--signal=steps|chirp] [--duration=10] [--episodes=1]
+  python -m robel_dm.sysid fit DIR [DIR ...] --domain=dclaw \
+      --output=calibration.json [--parameters=kp,damping,...]
+
+`excite` drives the robot through an excitation sequence and records it;
+`fit` fits the simulated robot to recordings, prints the per-joint error
+before and after, and writes the calibration that `suite.load(...,
+dynamics=FILE)` and `evaluate --dynamics=FILE` apply. See docs/sysid.md.
+"""
+
+import sys
+
+from absl import app, flags
+import numpy as np
+
+from robel_dm import calibration, provenance, recording, suite
+from robel_dm.sysid import excite as excite_lib
+from robel_dm.sysid import fit as fit_lib
+
+FLAGS = flags.FLAGS
+COMMANDS = ('excite', 'fit')
+
+
+def _define_flags() -> None:
+  flags.DEFINE_enum('domain', 'dclaw', ['dclaw', 'dkitty'], 'The robot.')
+  flags.DEFINE_string(
+    'device_path', None,
+    "excite: the robot's Dynamixel bus, or 'virtual' for the simulated bus; "
+    'unset simulates.',
+  )  # fmt: skip
+  flags.DEFINE_string(
+    'robot_config', None, 'excite: the robot configuration (JSON).'
+  )
+  flags.DEFINE_string(
+    'dynamics', None,
+    'excite: a calibration of the simulated robot (simulation or the '
+    'virtual bus only).',
+  )  # fmt: skip
+  flags.DEFINE_string('record', None, 'excite: the recording directory.')
+  flags.DEFINE_enum('signal', 'steps', list(excite_lib.SIGNALS), 'excite.')
+  flags.DEFINE_float('duration', 10.0, 'excite: seconds per episode.')
+  flags.DEFINE_integer('episodes', 1, 'excite: episodes.', lower_bound=1)
+  flags.DEFINE_float(
+    'amplitude', 0.4,
+    "excite: fraction of each joint's half action range to move.",
+  )  # fmt: skip
+  flags.DEFINE_list('joints', None, 'excite: joints to move (default all).')
+  flags.DEFINE_integer('seed', 0, 'excite: seed of the sequence.')
+  flags.DEFINE_string('output', None, 'fit: write the calibration here.')
+  flags.DEFINE_list(
+    'parameters', list(calibration.PARAMETERS), 'fit: parameters to fit.'
+  )
+  flags.DEFINE_bool('fit_delay', True, 'fit: also fit the control delay.')
+
+
+def excite() -> int:
+  if not FLAGS.record:
+    raise ValueError('excite needs --record=DIR (where the episodes go)')
+  excitation = excite_lib.Excitation(
+    signal=FLAGS.signal,
+    duration=FLAGS.duration,
+    amplitude=FLAGS.amplitude,
+    joints=tuple(FLAGS.joints) if FLAGS.joints else None,
+    seed=FLAGS.seed,
+  )
+  env = suite.load_excitation(
+    FLAGS.domain,
+    FLAGS.duration,
+    seed=FLAGS.seed,
+    device_path=FLAGS.device_path,
+    robot_config=FLAGS.robot_config,
+    dynamics=FLAGS.dynamics,
+  )
+  metadata = {
+    'kind': 'excitation',
+    'domain': FLAGS.domain,
+    'excitation': excitation.to_dict(),
+    'device_path': FLAGS.device_path,
+    'dynamics': FLAGS.dynamics,
+  }
+  try:
+    # The recorder checks the directory before the robot moves.
+    env = recording.Recorder(env, FLAGS.record, metadata=metadata)
+    steps = excite_lib.run(env, excitation, FLAGS.episodes)
+  finally:
+    env.close()
+  print(f'recorded {FLAGS.episodes} episodes, {steps} steps in {FLAGS.record}')
+  return 0
+
+
+def fit(directories: list[str]) -> int:
+  if not directories:
+    raise ValueError('fit needs the recording directories to fit')
+  trajectories = []
+  for directory in directories:
+    trajectories += fit_lib.load_trajectories(directory, FLAGS.domain)
+  result = fit_lib.fit(
+    trajectories,
+    FLAGS.domain,
+    parameters=tuple(FLAGS.parameters),
+    fit_delay=FLAGS.fit_delay,
+    source={'recordings': directories, 'provenance': provenance.describe()},
+  )
+  print(report(result))
+  if FLAGS.output:
+    calibration.save(result.calibration, FLAGS.output)
+    print(f'wrote {FLAGS.output}')
+  return 0
+
+
+def report(result: fit_lib.FitResult) -> str:
+  """The fit as a table: per joint, the values and the angle error."""
+  names = list(result.fitted)
+  header = f'{"joint":<8}' + ''.join(f'{n:>14}' for n in names)
+  header += f'{"RMS error (deg): model":>26}{"fit":>8}'
+  lines = [header]
+  for j, joint in enumerate(result.joint_names):
+    cells = ''.join(
+      f'{result.fitted[n][j]:>10.4g}'
+      + ('?' if f'{joint}.{n}' in result.not_identified else ' ')
+      + f'{result.fitted[n][j] / result.nominal[n][j]:>3.1f}x'
+      if result.nominal[n][j] > 0
+      else f'{result.fitted[n][j]:>13.4g}'
+      + ('?' if f'{joint}.{n}' in result.not_identified else ' ')
+      for n in names
+    )
+    before, after = np.degrees([result.rms_before[j], result.rms_after[j]])
+    lines.append(f'{joint:<8}{cells}{before:>26.3f}{after:>8.3f}')
+  lines.append(
+    f'control delay {result.control_delay * 1e3:.1f} ms; RMS angle error '
+    f'{np.degrees(np.sqrt(np.mean(result.rms_before**2))):.3f} -> '
+    f'{np.degrees(np.sqrt(np.mean(result.rms_after**2))):.3f} deg; '
+    f'{result.evaluations} simulations'
+  )
+  if result.not_identified:
+    lines.append(
+      '? not pinned down by these recordings (relative standard error over '
+      f'{fit_lib.IDENTIFIED_UNCERTAINTY:.0%}): '
+      + ', '.join(result.not_identified)
+    )
+  return '\n'.join(lines)
+
+
+def main(argv: list[str]) -> int:
+  if len(argv) < 2 or argv[1] not in COMMANDS:
+    raise app.UsageError(f'the first argument must be one of {COMMANDS}')
+  command, rest = argv[1], argv[2:]
+  try:
+    if command == 'excite':
+      if rest:
+        raise app.UsageError(f'unexpected arguments: {rest}')
+      return excite()
+    return fit(rest)
+  except (ValueError, RuntimeError) as error:
+    # Includes calibration, recording and robot errors; a robot's motors
+    # were released on the way out (see robel_dm.hardware.shutdown).
+    print(f'error: {error}', file=sys.stderr)
+    return 2
+  except KeyboardInterrupt:
+    print('interrupted', file=sys.stderr)
+    return 130
+
+
+if __name__ == '__main__':
+  _define_flags()
+  app.run(main)

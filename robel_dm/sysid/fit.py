@@ -1,0 +1,441 @@
+"""Fits the simulated robot's joint dynamics to recorded excitation episodes.
+
+The recorded joint targets are replayed on the excitation scene in MuJoCo,
+from each episode's measured initial state, and the per-joint parameters
+(kp, damping, friction loss, armature) and one control delay are chosen to
+minimize the difference between simulated and measured joint angles,
+velocities and, when the motors measured them, currents (scipy's bounded
+trust-region least squares). The delay is searched over whole physics steps,
+the rest is continuous. See docs/sysid.md.
+
+Why currents: the angles of a position servo depend on kp, damping and
+inertia almost only through their ratios; gravity and the measured current
+(torque = kp * (target - angle)) fix their scale.
+"""
+
+import dataclasses
+from typing import Any
+
+from dm_control import mjcf
+import mujoco
+import numpy as np
+from scipy import optimize, sparse
+
+from robel_dm import calibration as calibration_lib
+from robel_dm import recording
+from robel_dm.hardware import control_table
+from robel_dm.tasks import excitation
+
+# Residual scales: a difference of this size counts as 1, so that angles,
+# velocities and currents weigh alike. About 3 encoder ticks, 4 velocity
+# units and 7 current units of an X430.
+POSITION_SCALE = 0.005  # rad
+VELOCITY_SCALE = 0.1  # rad/s
+CURRENT_SCALE = 20.0  # mA
+# Search bounds of each parameter as multiples of the model's value (kp,
+# damping, armature) or in N m (friction loss).
+RELATIVE_BOUNDS = (0.1, 10.0)
+FRICTIONLOSS_BOUNDS = (0.0, 0.5)  # N m
+# Friction loss is optimized in these units (N m) and starts here.
+FRICTIONLOSS_UNIT = 0.01
+FRICTIONLOSS_START = 0.001
+# A parameter whose relative standard error exceeds this, or that ends on a
+# search bound, is reported as not identified by the recordings.
+IDENTIFIED_UNCERTAINTY = 0.1
+# Finite-difference step of the Jacobian, relative to the parameter.
+DIFF_STEP = 1e-4
+
+
+class SysidError(ValueError):
+  """The recordings cannot be fitted (named)."""
+
+
+@dataclasses.dataclass
+class Trajectory:
+  """One recorded excitation episode in joint space.
+
+  Attributes:
+    targets: joint targets, (steps + 1, joints), rad; row 0 is the goal
+      the motors held at the reset, row k the one sent at step k.
+    qpos: measured joint angles, (steps + 1, joints), rad.
+    qvel: measured joint velocities, rad/s.
+    current: measured currents in the joints' sense, mA, or None.
+  """
+
+  targets: np.ndarray
+  qpos: np.ndarray
+  qvel: np.ndarray
+  current: np.ndarray | None
+
+
+def load_trajectories(directory, domain: str) -> list[Trajectory]:
+  """The excitation episodes of a recording directory.
+
+  Raises:
+    SysidError: if it holds no excitation episode of `domain`.
+  """
+  trajectories = []
+  for episode in recording.read(directory):
+    metadata = episode.metadata
+    if metadata.get('kind') != 'excitation':
+      continue
+    if metadata.get('domain') != domain:
+      raise SysidError(
+        f'{directory}: episode {metadata.get("episode_index")} excites a '
+        f'{metadata.get("domain")}, not a {domain}'
+      )
+    steps = episode.steps
+    if len(episode) < 3:
+      continue
+    qpos = steps['observation.qpos']
+    current = None
+    if 'motor.current' in steps:
+      robot = metadata.get('robot') or {}
+      scales = [motor['scale'] for motor in robot.get('joints', ())]
+      if len(scales) != qpos.shape[1]:
+        raise SysidError(
+          f'{directory}: episode {metadata["episode_index"]} has motor '
+          'currents but no robot configuration to orient them'
+        )
+      joints = qpos.shape[1]
+      current = steps['motor.current'][:, :joints] * np.asarray(scales)
+    trajectories.append(
+      Trajectory(
+        targets=steps['joint_targets'],
+        qpos=qpos,
+        qvel=steps['observation.qvel'],
+        current=current,
+      )
+    )
+  if not trajectories:
+    raise SysidError(
+      f'{directory} has no {domain} excitation episode (record one with '
+      '`python -m robel_dm.sysid excite`)'
+    )
+  return trajectories
+
+
+class ReplaySimulator:
+  """The excitation scene, replaying recorded targets with given dynamics."""
+
+  def __init__(self, domain: str):
+    task = excitation.JointExcitation(domain, duration=1.0)
+    self._physics = mjcf.Physics.from_mjcf_model(task.root_entity.mjcf_model)
+    self.model, self.data = self._physics.model.ptr, self._physics.data.ptr
+    # The servos go wherever they are told, as on the virtual bus.
+    self.model.actuator_ctrllimited[:] = 0
+    joints = self._physics.bind(task.robot.joints)
+    self.joint_names = tuple(joint.name for joint in task.robot.joints)
+    self._qpos = np.asarray(joints.qposadr, int)
+    self._dofs = np.asarray(joints.dofadr, int)
+    self._actuators = np.asarray(
+      self._physics.bind(task.robot.actuators).element_id, int
+    )
+    self.substeps = round(task.control_timestep / self.model.opt.timestep)
+    self.timestep = float(self.model.opt.timestep)
+    self.nominal = self.values()
+
+  def values(self) -> dict[str, np.ndarray]:
+    """The model's current parameters, per joint."""
+    model = self.model
+    return {
+      'kp': model.actuator_gainprm[self._actuators, 0].copy(),
+      'damping': model.dof_damping[self._dofs].copy(),
+      'frictionloss': model.dof_frictionloss[self._dofs].copy(),
+      'armature': model.dof_armature[self._dofs].copy(),
+    }
+
+  def set_values(self, values: dict[str, np.ndarray]) -> None:
+    model = self.model
+    for name, value in values.items():
+      if name == 'kp':
+        model.actuator_gainprm[self._actuators, 0] = value
+        model.actuator_biasprm[self._actuators, 1] = -value
+      else:
+        getattr(model, f'dof_{name}')[self._dofs] = value
+    # Constants derived from the inertia (the constraint solver's weights).
+    mujoco.mj_setConst(model, self.data)
+
+  def simulate(
+    self, trajectory: Trajectory, delay_steps: int
+  ) -> tuple[np.ndarray, ...]:
+    """Joint angles, velocities and actuator forces after every step."""
+    model, data = self.model, self.data
+    mujoco.mj_resetData(model, data)
+    data.qpos[self._qpos] = trajectory.qpos[0]
+    data.qvel[self._dofs] = trajectory.qvel[0]
+    data.ctrl[self._actuators] = trajectory.targets[0]
+    mujoco.mj_forward(model, data)
+    steps = len(trajectory.targets) - 1
+    qpos = np.empty((steps, len(self._qpos)))
+    qvel, force = np.empty_like(qpos), np.empty_like(qpos)
+    rest = self.substeps - delay_steps
+    for k in range(steps):
+      if delay_steps:
+        mujoco.mj_step(model, data, delay_steps)
+      data.ctrl[self._actuators] = trajectory.targets[k + 1]
+      mujoco.mj_step(model, data, rest)
+      qpos[k] = data.qpos[self._qpos]
+      qvel[k] = data.qvel[self._dofs]
+      force[k] = data.actuator_force[self._actuators]
+    return qpos, qvel, force
+
+
+@dataclasses.dataclass
+class FitResult:
+  """A fit and how well it explains the recordings.
+
+  Attributes:
+    calibration: the fitted values (write it with `calibration.save`).
+    joint_names: the joints, in action order.
+    nominal: the model's values before the fit, parameter -> per joint.
+    fitted: the fitted values, parameter -> per joint.
+    uncertainty: the relative standard error of each fitted value
+      (friction loss: relative to at least `FRICTIONLOSS_UNIT`), parameter
+      -> per joint.
+    rms_before: per-joint RMS angle error of the model, rad.
+    rms_after: per-joint RMS angle error of the fit, rad.
+    control_delay: the fitted delay, s.
+    not_identified: 'joint.parameter' names the recordings do not pin down.
+    evaluations: simulations run.
+  """
+
+  calibration: calibration_lib.Calibration
+  joint_names: tuple[str, ...]
+  nominal: dict[str, np.ndarray]
+  fitted: dict[str, np.ndarray]
+  uncertainty: dict[str, np.ndarray]
+  rms_before: np.ndarray
+  rms_after: np.ndarray
+  control_delay: float
+  not_identified: list[str]
+  evaluations: int
+
+
+class _Problem:
+  """The least-squares problem of one delay."""
+
+  def __init__(self, simulator, trajectories, parameters, use_current):
+    self.simulator = simulator
+    self.trajectories = trajectories
+    self.parameters = parameters
+    self.use_current = use_current
+    self.joints = len(simulator.joint_names)
+    self.evaluations = 0
+    nominal = simulator.nominal
+    self.unit = {
+      name: (
+        np.full(self.joints, FRICTIONLOSS_UNIT)
+        if name == 'frictionloss'
+        else nominal[name]
+      )
+      for name in parameters
+    }
+
+  def start(self) -> np.ndarray:
+    start = []
+    for name in self.parameters:
+      if name == 'frictionloss':
+        start.append(np.full(self.joints, FRICTIONLOSS_START))
+      else:
+        start.append(self.simulator.nominal[name])
+    return self.scaled(dict(zip(self.parameters, start, strict=True)))
+
+  def scaled(self, values) -> np.ndarray:
+    return np.concatenate([values[n] / self.unit[n] for n in self.parameters])
+
+  def values(self, x: np.ndarray) -> dict[str, np.ndarray]:
+    parts = np.split(x, len(self.parameters))
+    return {
+      name: part * self.unit[name]
+      for name, part in zip(self.parameters, parts, strict=True)
+    }
+
+  def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+    low, high = [], []
+    for name in self.parameters:
+      if name == 'frictionloss':
+        bounds = np.array(FRICTIONLOSS_BOUNDS) / FRICTIONLOSS_UNIT
+      else:
+        bounds = np.array(RELATIVE_BOUNDS)
+      low.append(np.full(self.joints, bounds[0]))
+      high.append(np.full(self.joints, bounds[1]))
+    return np.concatenate(low), np.concatenate(high)
+
+  def residuals(self, x: np.ndarray | None, delay: int) -> np.ndarray:
+    values = self.simulator.nominal if x is None else self.values(x)
+    self.simulator.set_values(values)
+    self.evaluations += 1
+    parts = []
+    for trajectory in self.trajectories:
+      qpos, qvel, force = self.simulator.simulate(trajectory, delay)
+      components = [
+        (qpos - trajectory.qpos[1:]) / POSITION_SCALE,
+        (qvel - trajectory.qvel[1:]) / VELOCITY_SCALE,
+      ]
+      if self.use_current:
+        current = 1000.0 * force / control_table.TORQUE_PER_AMPERE
+        components.append((current - trajectory.current[1:]) / CURRENT_SCALE)
+      parts.append(np.stack(components, axis=1).ravel())
+    return np.concatenate(parts)
+
+  def sparsity(self, rows: int) -> sparse.csr_matrix:
+    """Each joint's residuals depend (mostly) on its own parameters."""
+    row_joint = np.arange(rows) % self.joints
+    col_joint = np.tile(np.arange(self.joints), len(self.parameters))
+    return sparse.csr_matrix(row_joint[:, None] == col_joint[None, :])
+
+
+def _rms_angle_error(problem, x, delay) -> np.ndarray:
+  errors = []
+  values = problem.simulator.nominal if x is None else problem.values(x)
+  problem.simulator.set_values(values)
+  for trajectory in problem.trajectories:
+    qpos, _, _ = problem.simulator.simulate(trajectory, delay)
+    errors.append(qpos - trajectory.qpos[1:])
+  return np.sqrt(np.mean(np.square(np.concatenate(errors)), axis=0))
+
+
+def _best_delay(problem, x) -> int:
+  costs = [
+    float(np.sum(np.square(problem.residuals(x, delay))))
+    for delay in range(problem.simulator.substeps)
+  ]
+  return int(np.argmin(costs))
+
+
+def fit(
+  trajectories: list[Trajectory],
+  domain: str,
+  *,
+  parameters: tuple[str, ...] = calibration_lib.PARAMETERS,
+  fit_delay: bool = True,
+  max_evaluations: int = 200,
+  source: dict[str, Any] | None = None,
+) -> FitResult:
+  """Fits joint dynamics (and the control delay) to excitation episodes.
+
+  Args:
+    trajectories: from `load_trajectories`.
+    domain: 'dclaw' or 'dkitty'.
+    parameters: which of `calibration.PARAMETERS` to fit; the others keep
+      the model's values.
+    fit_delay: search the control delay (else 0).
+    max_evaluations: simulations per least-squares fit.
+    source: recorded in the calibration's `fit` entry (e.g. directories).
+
+  Returns:
+    The fit.
+
+  Raises:
+    SysidError: for unknown parameters.
+  """
+  unknown = sorted(set(parameters) - set(calibration_lib.PARAMETERS))
+  if unknown or not parameters:
+    raise SysidError(
+      f'parameters must be some of {calibration_lib.PARAMETERS}, got '
+      f'{list(parameters)}'
+    )
+  parameters = tuple(p for p in calibration_lib.PARAMETERS if p in parameters)
+  simulator = ReplaySimulator(domain)
+  use_current = all(t.current is not None for t in trajectories)
+  problem = _Problem(simulator, trajectories, parameters, use_current)
+  rms_before = _rms_angle_error(problem, None, 0)
+  x = problem.start()
+  delay = _best_delay(problem, None) if fit_delay else 0
+  rows = len(problem.residuals(x, delay))
+  fits: dict[int, Any] = {}
+
+  def fit_at(delay: int, start: np.ndarray):
+    if delay not in fits:
+      fits[delay] = optimize.least_squares(
+        problem.residuals,
+        start,
+        bounds=problem.bounds(),
+        jac_sparsity=problem.sparsity(rows),
+        diff_step=DIFF_STEP,
+        x_scale='jac',
+        max_nfev=max_evaluations,
+        args=(delay,),
+      )
+    return fits[delay]
+
+  result = fit_at(delay, x)
+  # The delay trades off against inertia and damping: walk to the
+  # neighbouring delay while its (warm-started) fit is better.
+  while fit_delay:
+    neighbours = [
+      d for d in (delay - 1, delay + 1) if 0 <= d < simulator.substeps
+    ]
+    best = min((fit_at(d, result.x) for d in neighbours), key=lambda r: r.cost)
+    if best.cost >= result.cost:
+      break
+    delay = next(d for d in neighbours if fits[d] is best)
+    result = best
+  x = result.x
+  fitted = problem.values(x)
+  uncertainty = _uncertainty(problem, result, fitted)
+  rms_after = _rms_angle_error(problem, x, delay)
+  names = simulator.joint_names
+  low, high = (
+    problem.values(problem.bounds()[0]),
+    problem.values(problem.bounds()[1]),
+  )
+  not_identified = [
+    f'{names[j]}.{name}'
+    for name in parameters
+    for j in range(len(names))
+    if not uncertainty[name][j] <= IDENTIFIED_UNCERTAINTY
+    or np.isclose(fitted[name][j], low[name][j], rtol=1e-3, atol=1e-6)
+    or np.isclose(fitted[name][j], high[name][j], rtol=1e-3)
+  ]
+  control_delay = delay * simulator.timestep
+  calibration = calibration_lib.Calibration(
+    domain=domain,
+    joints={
+      names[j]: {name: float(fitted[name][j]) for name in parameters}
+      for j in range(len(names))
+    },
+    control_delay=control_delay,
+    fit={
+      **(source or {}),
+      'episodes': len(trajectories),
+      'steps': int(sum(len(t.targets) - 1 for t in trajectories)),
+      'used_currents': use_current,
+      'rms_angle_error_before': rms_before.tolist(),
+      'rms_angle_error_after': rms_after.tolist(),
+      'relative_uncertainty': {n: u.tolist() for n, u in uncertainty.items()},
+      'not_identified': not_identified,
+    },
+  )
+  return FitResult(
+    calibration=calibration,
+    joint_names=names,
+    nominal={name: simulator.nominal[name] for name in parameters},
+    fitted=fitted,
+    uncertainty=uncertainty,
+    rms_before=rms_before,
+    rms_after=rms_after,
+    control_delay=control_delay,
+    not_identified=not_identified,
+    evaluations=problem.evaluations,
+  )
+
+
+def _uncertainty(problem, result, fitted) -> dict[str, np.ndarray]:
+  """Standard errors from the Gauss-Newton covariance at the optimum,
+  relative to the value (friction loss: to at least FRICTIONLOSS_UNIT)."""
+  jacobian = result.jac
+  jacobian = jacobian.toarray() if sparse.issparse(jacobian) else jacobian
+  dof = max(1, len(result.fun) - len(result.x))
+  variance = 2 * result.cost / dof
+  information = jacobian.T @ jacobian
+  covariance = np.linalg.pinv(information) * variance
+  std = np.sqrt(np.clip(np.diag(covariance), 0, None))
+  scaled = problem.values(std)
+  uncertainty = {}
+  for name in problem.parameters:
+    # Friction loss may be 0: relative to at least one unit.
+    floor = FRICTIONLOSS_UNIT if name == 'frictionloss' else 1e-12
+    uncertainty[name] = scaled[name] / np.maximum(fitted[name], floor)
+  return uncertainty
