@@ -153,6 +153,7 @@ def evaluate(
   tracker: str | None = None,
   ray_address: str | None = None,
   record: str | None = None,
+  dynamics: str | None = None,
 ) -> dict[str, Any]:
   """Runs `episodes` episodes and returns the metrics.
 
@@ -184,6 +185,8 @@ def evaluate(
       one here; the records equal a serial run's.
     record: record every timestep into this recording directory
       (`robel_dm.recording`; checked before anything moves).
+    dynamics: a calibration file of the simulated robot (see
+      `suite.load` and docs/sysid.md).
     tracker: with `device_path`, a D'Kitty's motion tracker as a spec
       (`robel_dm.hardware.tracker_spec`), e.g.
       'natnet:10.0.0.5,rigid_body=1,target=2'.
@@ -201,11 +204,16 @@ def evaluate(
   if workers < 1:
     raise ValueError(f'workers must be >= 1, got {workers}')
   if (workers > 1 or ray_address) and (
-    callable(policy) or device_path or video_dir or record or seed is None
+    callable(policy)
+    or device_path
+    or video_dir
+    or record
+    or dynamics
+    or seed is None
   ):
     raise ValueError(
       'workers > 1 and ray_address need a simulated task, a seed, no video, '
-      'and a policy given by name or path'
+      'no dynamics, and a policy given by name or path'
     )
   if tracker is not None:
     from robel_dm.hardware import tracker_spec  # noqa: PLC0415
@@ -221,6 +229,7 @@ def evaluate(
     reset=reset,
     guide=guide,
     tracker=tracker,
+    dynamics=dynamics,
   )
   if record is not None:
     try:
@@ -234,6 +243,7 @@ def evaluate(
           'seed': seed,
           'policy': policy if isinstance(policy, str) else repr(policy),
           'device_path': device_path,
+          'dynamics': dynamics,
         },
       )
     except recording.RecordingError:
@@ -246,6 +256,7 @@ def evaluate(
     'policy': policy if isinstance(policy, str) else repr(policy),
     'seed': seed,
     'device_path': device_path,
+    'dynamics': dynamics,
     'provenance': provenance.describe(),
   }
   records, total_steps, step_seconds = [], 0, 0.0
@@ -469,6 +480,12 @@ def _define_flags() -> None:
   )
   flags.DEFINE_string('output', None, 'Write the results here (JSON).')
   flags.DEFINE_string(
+    'dynamics',
+    None,
+    'A calibration of the simulated robot (python -m robel_dm.sysid fit); '
+    'simulation or --device_path=virtual.',
+  )
+  flags.DEFINE_string(
     'device_path',
     None,
     'Run on a robot: its Dynamixel bus (e.g. /dev/ttyUSB0, or the path '
@@ -551,6 +568,7 @@ def main(argv):
         tracker=FLAGS.tracker,
         ray_address=FLAGS.ray_address,
         record=FLAGS.record,
+        dynamics=FLAGS.dynamics,
       )
       finished.append(results)
       print(format_summary(results), flush=True)

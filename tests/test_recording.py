@@ -170,3 +170,39 @@ def test_the_command_line_summarizes_a_recording(tmp_path):
     capture_output=True, text=True, check=False,
   )  # fmt: skip
   assert bad.returncode == 2 and 'not a robel_dm recording' in bad.stderr
+
+
+def test_motor_health_and_faults_are_recorded_on_the_virtual_bus(tmp_path):
+  pytest.importorskip('dynamixel_sdk')
+  from robel_dm import suite  # noqa: PLC0415
+  from robel_dm.hardware import control_table as table  # noqa: PLC0415
+
+  env = recording.Recorder(
+    suite.load('dclaw', 'pose_fixed', device_path='virtual'), tmp_path
+  )
+  servos = {servo.motor_id: servo for servo in env.virtual_bus.servos}
+  servos[21].set(table.PRESENT_TEMPERATURE, 52)
+  env.reset()
+  for _ in range(12):  # Health is read at the reset and every 10 steps.
+    env.step(np.zeros(9))
+  servos[31].inject_hardware_error(0b100)  # Overheating (bit 2).
+  with pytest.raises(Exception, match='hardware error'):
+    for _ in range(10):
+      env.step(np.zeros(9))
+  env.close()
+  (episode,) = recording.read(tmp_path)
+  steps = episode.steps
+  ids = [m['id'] for m in episode.metadata['robot']['joints']]
+  assert ids == [10, 11, 12, 20, 21, 22, 30, 31, 32]
+  temperatures = steps['motor.temperature'][:, :9]
+  assert temperatures[:, ids.index(21)].tolist() == [52] * len(episode)
+  assert set(temperatures[:, ids.index(10)]) == {35}
+  volts = servos[10].get(table.PRESENT_INPUT_VOLTAGE) * table.VOLTS_PER_UNIT
+  assert volts > 0 and np.all(steps['motor.voltage'] == volts)
+  assert not steps['motor.hardware_error'].any()
+  health_times = steps['motor.health_timestamp']
+  assert np.isfinite(health_times).all() and len(set(health_times)) == 2
+  # The fault ended the episode, and its metadata says why.
+  assert episode.metadata['complete'] is False
+  assert 'hardware error' in episode.metadata['error']
+  assert '31' in episode.metadata['error']  # The motor is named.

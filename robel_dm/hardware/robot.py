@@ -9,12 +9,9 @@ from robel_dm.hardware import config as config_lib
 from robel_dm.hardware import control_table as table
 from robel_dm.hardware import dynamixel
 
-# One sync read covers input voltage and temperature (addresses 144..146).
-_HEALTH_BLOCK = table.Item(
-  table.PRESENT_INPUT_VOLTAGE.address,
-  table.PRESENT_TEMPERATURE.address + 1 - table.PRESENT_INPUT_VOLTAGE.address,
-  writable=False,
-)
+# One sync read covers input voltage and temperature (addresses 144..146);
+# it reads 4 bytes because dynamixel_sdk decodes only 1, 2 or 4.
+_HEALTH_BLOCK = table.Item(table.PRESENT_INPUT_VOLTAGE.address, 4)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -213,7 +210,7 @@ class HardwareRobot:
     ids = self.motor_ids
     values = np.array([block[i] for i in ids], dtype=np.int64)
     self.voltages[:] = (values & 0xFFFF) * table.VOLTS_PER_UNIT
-    self.temperatures[:] = values >> 16
+    self.temperatures[:] = (values >> 16) & 0xFF
     temperatures = dict(zip(ids, self.temperatures.tolist(), strict=True))
     hot = {
       i: t for i, t in temperatures.items() if t > self._health.max_temperature

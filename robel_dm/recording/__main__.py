@@ -1,19 +1,18 @@
-"""Lists a recording: python -m robel_dm.recording DIR."""
+"""Lists a recording, or exports it as a LeRobotDataset.
 
+python -m robel_dm.recording DIR
+python -m robel_dm.recording DIR --lerobot=OUT
+"""
+
+import argparse
 import sys
 
 from robel_dm.recording import format as format_lib
+from robel_dm.recording import lerobot
 
 
-def main(argv: list[str]) -> int:
-  if len(argv) != 2:
-    print('usage: python -m robel_dm.recording DIR', file=sys.stderr)
-    return 2
-  try:
-    rows = format_lib.summarize(argv[1])
-  except format_lib.RecordingError as error:
-    print(f'error: {error}', file=sys.stderr)
-    return 2
+def _summary(directory: str) -> None:
+  rows = format_lib.summarize(directory)
   print(f'{"episode":>7} {"steps":>6} {"complete":>8} {"success":>7} '
         f'{"return":>10}  pos/vel/cur violations')  # fmt: skip
   for row in rows:
@@ -25,6 +24,32 @@ def main(argv: list[str]) -> int:
       f'{safety}'
     )
   print(f'{len(rows)} episodes, {sum(r["steps"] for r in rows)} steps')
+
+
+def main(argv: list[str]) -> int:
+  parser = argparse.ArgumentParser(
+    prog='python -m robel_dm.recording', description=__doc__.splitlines()[0]
+  )
+  parser.add_argument('directory', help='a recording directory')
+  parser.add_argument(
+    '--lerobot',
+    metavar='OUT',
+    help='write its complete episodes as a LeRobotDataset v2.1 here',
+  )
+  arguments = parser.parse_args(argv[1:])
+  try:
+    if arguments.lerobot:
+      info = lerobot.export(arguments.directory, arguments.lerobot)
+      print(
+        f'wrote {arguments.lerobot}: {info["total_episodes"]} episodes, '
+        f'{info["total_frames"]} frames (LeRobotDataset '
+        f'{info["codebase_version"]})'
+      )
+    else:
+      _summary(arguments.directory)
+  except format_lib.RecordingError as error:
+    print(f'error: {error}', file=sys.stderr)
+    return 2
   return 0
 
 

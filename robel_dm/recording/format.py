@@ -43,7 +43,12 @@ class Episode:
     return len(next(iter(self.steps.values()))) if self.steps else 0
 
 
-def _pyarrow():
+def require_pyarrow():
+  """pyarrow with its IPC and Parquet modules.
+
+  Raises:
+    RecordingError: if the `data` extra is not installed.
+  """
   try:
     import pyarrow  # noqa: PLC0415
     import pyarrow.ipc  # noqa: F401, PLC0415
@@ -92,7 +97,7 @@ class EpisodeWriter:
   """Streams one episode's rows to an Arrow file; finishes it as Parquet."""
 
   def __init__(self, directory: pathlib.Path, index: int):
-    self._pa = _pyarrow()
+    self._pa = require_pyarrow()
     self.directory = directory
     self.index = index
     self.stream_path = directory / CHUNK / f'episode_{index:06d}.arrows'
@@ -168,7 +173,7 @@ def _columns(table) -> dict[str, np.ndarray]:
 
 def _read_stream(path: pathlib.Path):
   """The complete record batches of a (possibly truncated) Arrow stream."""
-  pa = _pyarrow()
+  pa = require_pyarrow()
   batches = []
   try:
     with pa.ipc.open_stream(str(path)) as reader:
@@ -188,7 +193,7 @@ def read(directory: str | pathlib.Path) -> list[Episode]:
   directory = pathlib.Path(directory)
   if not (directory / INFO).is_file():
     raise RecordingError(f'{directory} is not a robel_dm recording')
-  pa = _pyarrow()
+  pa = require_pyarrow()
   lines = {}
   if (directory / EPISODES).is_file():
     for line in (directory / EPISODES).read_text().splitlines():

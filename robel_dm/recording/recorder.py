@@ -61,6 +61,7 @@ class Recorder(dm_env.Environment):
       'provenance': provenance.describe(),
       'session': self._metadata,
       'robot': self._robot_config,
+      'observation_keys': list(env.task.agent_observation_keys),
     }
     try:
       (self._directory / format_lib.INFO).write_text(json.dumps(info, indent=1))

@@ -18,4 +18,3 @@ In Python: `robel_dm.sysid.excite` (the sequences; `excite.run` drives an
 environment through one) and `robel_dm.sysid.fit` (`fit.load_trajectories`,
 `fit.fit`). See docs/sysid.md.
 """
-
