@@ -290,6 +290,37 @@ def test_corrupted_replies_blame_the_motor_that_sent_them(short_timeouts, claw):
   assert not isinstance(error.value, dynamixel.MissingMotorError)
 
 
+def test_a_late_reply_is_not_taken_for_a_motors_state(claw, monkeypatch):
+  # A ping that timed out can be answered late; its reply then waits in the
+  # port and the next state read takes it for motor 10's (3 bytes, not 20).
+  from robel_dm.hardware import protocol  # noqa: PLC0415
+
+  late_ping_reply = protocol.encode_status(10, 0, bytes([0xE8, 0x03, 0x2D]))
+  pending = []
+  read_port, tx_rx = sdk.PortHandler.readPort, sdk.GroupSyncRead.txRxPacket
+
+  def read_with_late_reply(port, length):
+    return pending.pop() if pending else read_port(port, length)
+
+  def state_read_after_late_reply(reader):
+    if reader.data_length == table.STATE_BLOCK_SIZE and not armed:
+      armed.append(True)
+      pending.append(late_ping_reply)
+    return tx_rx(reader)
+
+  armed = []
+  monkeypatch.setattr(sdk.PortHandler, 'readPort', read_with_late_reply)
+  monkeypatch.setattr(
+    sdk.GroupSyncRead, 'txRxPacket', state_read_after_late_reply
+  )
+  timestep = claw.step(np.zeros(9))  # Read again, not a crash.
+  assert armed and not pending
+  np.testing.assert_allclose(
+    timestep.observation['qpos'], claw.robot.positions[:9]
+  )
+  claw.step(np.zeros(9))
+
+
 def test_a_motor_with_a_bad_checksum_is_not_called_silent(short_timeouts, claw):
   env, bus = claw, claw.virtual_bus
   bus.faults.corrupt_next(31, count=1000)

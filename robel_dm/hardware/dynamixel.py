@@ -389,9 +389,16 @@ class DynamixelClient(register_access.RegisterAccess):
     failures = []  # (first motor without a valid reply, SDK result).
     for _ in range(self._retries + 1):
       result = self._call(lambda port: reader.txRxPacket())
-      if result == sdk.COMM_SUCCESS:
+      short = self._first_unread(reader)
+      if result == sdk.COMM_SUCCESS and short is None:
         break
-      failures.append((self._first_unread(reader), result))
+      if result == sdk.COMM_SUCCESS:
+        # A well-formed reply of another length: a late reply to an earlier
+        # packet (a ping that timed out) was taken for this motor's. Drop
+        # whatever else is waiting and read again.
+        result = sdk.COMM_RX_CORRUPT
+        self._call(lambda port: port.clearPort())
+      failures.append((short, result))
     else:
       raise self._read_failure(failures)
     state = self._state
