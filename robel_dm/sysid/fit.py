@@ -35,7 +35,7 @@ CURRENT_SCALE = 20.0  # mA
 # Search bounds of each parameter as multiples of the model's value (kp,
 # damping, armature) or in N m (friction loss).
 RELATIVE_BOUNDS = (0.1, 10.0)
-FRICTIONLOSS_BOUNDS = (0.0, 0.5)  # N m
+FRICTIONLOSS_BOUNDS = (1e-4, 0.5)  # N m
 # Friction loss is optimized in these units (N m) and starts here.
 FRICTIONLOSS_UNIT = 0.01
 FRICTIONLOSS_START = 0.001

@@ -1,0 +1,158 @@
+"""System identification where the truth is known, and the cost of a delay.
+
+1. Recovery. For each robot and excitation signal, a virtual bus runs a robot
+   whose every joint has kp, damping and armature scaled by its own random
+   factor in [0.6, 1.6], friction loss 0.02 N m (the model has none) and a
+   7.5 ms control delay. The excitation is recorded through dynamixel_sdk and
+   fitted, with and without the measured currents. Prints, per parameter,
+   the largest relative error over the joints, the delay found, the RMS angle
+   error before and after, and the fit's time.
+2. Step cost. `env.step` of pose_fixed with and without a calibrated delay,
+   each against raw MuJoCo stepping the same trajectory in the same run.
+
+    MUJOCO_GL=egl python benchmarks/sysid.py [--seeds 3] [--duration 10]
+"""
+
+import argparse
+import tempfile
+import time
+
+import mujoco
+import numpy as np
+
+from robel_dm import calibration, recording, suite
+from robel_dm.sysid import excite, fit
+from robel_dm.tasks import excitation
+
+NOMINAL = {'dclaw': (2.0, 0.1, 0.001), 'dkitty': (5.0, 1.0, 0.001)}
+FRICTIONLOSS = 0.02  # N m
+DELAY = 0.0075  # s
+
+
+def _truth(domain: str, seed: int) -> calibration.Calibration:
+  names = [
+    joint.name for joint in excitation.JointExcitation(domain, 1.0).robot.joints
+  ]
+  kp, damping, armature = NOMINAL[domain]
+  factors = np.random.default_rng(seed).uniform(0.6, 1.6, (len(names), 3))
+  joints = {
+    name: {
+      'kp': kp * f[0],
+      'damping': damping * f[1],
+      'armature': armature * f[2],
+      'frictionloss': FRICTIONLOSS,
+    }
+    for name, f in zip(names, factors, strict=True)
+  }
+  return calibration.Calibration(domain, joints, control_delay=DELAY)
+
+
+def recovery(domain, signal, seed, duration, use_current) -> dict:
+  truth = _truth(domain, seed)
+  with tempfile.TemporaryDirectory() as directory:
+    env = suite.load_excitation(
+      domain, duration, seed=seed, device_path='virtual', dynamics=truth
+    )
+    metadata = {'kind': 'excitation', 'domain': domain}
+    env = recording.Recorder(env, directory, metadata=metadata)
+    try:
+      excite.run(env, excite.Excitation(signal, duration, seed=seed))
+    finally:
+      env.close()
+    trajectories = fit.load_trajectories(directory, domain)
+  if not use_current:
+    for trajectory in trajectories:
+      trajectory.current = None
+  start = time.perf_counter()
+  result = fit.fit(trajectories, domain)
+  seconds = time.perf_counter() - start
+  errors = {}
+  for name, values in result.fitted.items():
+    true = np.array([truth.joints[j][name] for j in result.joint_names])
+    errors[name] = float(np.max(np.abs(values / true - 1)))
+  return {
+    'errors': errors,
+    'delay_ms': result.control_delay * 1e3,
+    'rms_before_deg': float(np.degrees(np.sqrt(np.mean(result.rms_before**2)))),
+    'rms_after_deg': float(np.degrees(np.sqrt(np.mean(result.rms_after**2)))),
+    'worst_ratio': float(np.max(result.rms_after / result.rms_before)),
+    'not_identified': len(result.not_identified),
+    'seconds': seconds,
+    'simulations': result.evaluations,
+  }
+
+
+def step_cost(steps: int, rounds: int) -> dict:
+  """Seconds per env.step with and without a delay, and raw MuJoCo's."""
+  delayed = calibration.Calibration(
+    'dclaw', {'FFJ10': {'kp': 2.0}}, control_delay=DELAY
+  )
+  results = {}
+  for label, dynamics in (('no delay', None), ('7.5 ms delay', delayed)):
+    env = suite.load('dclaw', 'pose_fixed', seed=0, dynamics=dynamics)
+    env.reset()
+    actions = np.random.default_rng(0).uniform(-1, 1, (steps, 9))
+    model, data = env.physics.model.ptr, env.physics.data.ptr
+    start_state = mujoco.MjData(model)
+    best_env = best_raw = np.inf
+    for _ in range(rounds):
+      env.reset()
+      mujoco.mj_copyData(start_state, model, data)
+      controls = np.empty((steps, model.nu))
+      start = time.perf_counter()
+      for i, action in enumerate(actions):
+        env.step(action)
+        controls[i] = data.ctrl
+      best_env = min(best_env, (time.perf_counter() - start) / steps)
+      mujoco.mj_copyData(data, model, start_state)
+      substeps = env.task.physics_steps_per_control_step
+      start = time.perf_counter()
+      for control in controls:
+        data.ctrl[:] = control
+        mujoco.mj_step(model, data, substeps)
+      best_raw = min(best_raw, (time.perf_counter() - start) / steps)
+    results[label] = (best_env, best_raw)
+    env.close()
+  return results
+
+
+def main():
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  parser.add_argument('--seeds', type=int, default=3)
+  parser.add_argument('--duration', type=float, default=10.0)
+  parser.add_argument('--steps', type=int, default=400)
+  parser.add_argument('--rounds', type=int, default=7)
+  arguments = parser.parse_args()
+  print(
+    'robot  signal  currents  seed | max relative error: kp damping '
+    'frictionloss armature | delay ms | RMS deg before -> after (worst '
+    'joint ratio) | flagged | fit s (simulations)'
+  )
+  for domain in ('dclaw', 'dkitty'):
+    for signal in excite.SIGNALS:
+      for use_current in (True, False):
+        for seed in range(1, arguments.seeds + 1):
+          r = recovery(domain, signal, seed, arguments.duration, use_current)
+          e = r['errors']
+          print(
+            f'{domain:<6} {signal:<6} {"yes" if use_current else "no":<8} '
+            f'{seed:>5} | {e["kp"]:6.1%} {e["damping"]:6.1%} '
+            f'{e["frictionloss"]:6.1%} {e["armature"]:6.1%} | '
+            f'{r["delay_ms"]:4.1f} | {r["rms_before_deg"]:.3f} -> '
+            f'{r["rms_after_deg"]:.4f} ({r["worst_ratio"]:.3f}) | '
+            f'{r["not_identified"]:>2} | {r["seconds"]:5.1f} '
+            f'({r["simulations"]})',
+            flush=True,
+          )
+  print('\nenv.step of dclaw pose_fixed against raw MuJoCo (same trajectory):')
+  for label, (env_s, raw_s) in step_cost(
+    arguments.steps, arguments.rounds
+  ).items():
+    print(
+      f'  {label:<13} {env_s * 1e6:7.1f} us/step, raw {raw_s * 1e6:7.1f} '
+      f'us/step, ratio raw/env {raw_s / env_s:.3f}'
+    )
+
+
+if __name__ == '__main__':
+  main()
