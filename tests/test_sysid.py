@@ -213,3 +213,23 @@ def test_command_line_excites_and_fits_in_simulation(tmp_path):
   )  # fmt: skip
   assert wrong.returncode == 2
   assert 'excites a dkitty, not a dclaw' in wrong.stderr
+
+
+def test_command_line_errors_are_one_line(tmp_path):
+  run = [sys.executable, '-m', 'robel_dm.sysid']
+  cases = [
+    (['excite', '--domain=dclaw'], 'excite needs --record=DIR'),
+    (['excite', f'--record={tmp_path / "r"}', '--joints=FFJ10,XX'],
+     "unknown joints ['XX']"),
+    (['excite', f'--record={tmp_path / "r"}', '--dynamics=none.json'],
+     'no calibration file none.json'),
+    (['fit', str(tmp_path), '--domain=dclaw'], 'is not a robel_dm recording'),
+    (['fit', '--domain=dclaw'], 'fit needs the recording directories'),
+  ]  # fmt: skip
+  for arguments, message in cases:
+    done = subprocess.run(
+      [*run, *arguments], capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 2, (arguments, done.stderr)
+    assert message in done.stderr, (arguments, done.stderr)
+    assert 'Traceback' not in done.stderr

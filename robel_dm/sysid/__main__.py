@@ -54,6 +54,9 @@ def _define_flags() -> None:
     'parameters', list(calibration.PARAMETERS), 'fit: parameters to fit.'
   )
   flags.DEFINE_bool('fit_delay', True, 'fit: also fit the control delay.')
+  flags.DEFINE_bool(
+    'currents', True, 'fit: also fit measured motor currents (robots only).'
+  )
 
 
 def excite() -> int:
@@ -102,6 +105,7 @@ def fit(directories: list[str]) -> int:
     FLAGS.domain,
     parameters=tuple(FLAGS.parameters),
     fit_delay=FLAGS.fit_delay,
+    use_currents=FLAGS.currents,
     source={'recordings': directories, 'provenance': provenance.describe()},
   )
   print(report(result))

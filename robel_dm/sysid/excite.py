@@ -118,11 +118,11 @@ def run(
   """
   task = env.task
   names = tuple(joint.name for joint in task.robot.joints)
-  count = 0
-  for episode in range(episodes):
-    timestep = env.reset()
-    low, high = task.action_range(env.physics)
-    sequence = targets(
+  low, high = task.action_range(env.physics)
+  # Every sequence first, so that a bad excitation fails before anything
+  # moves.
+  sequences = [
+    targets(
       dataclasses.replace(excitation, seed=excitation.seed + episode),
       names,
       task.center_pose,
@@ -130,6 +130,11 @@ def run(
       high,
       task.control_timestep,
     )
+    for episode in range(episodes)
+  ]
+  count = 0
+  for sequence in sequences:
+    env.reset()
     for target in sequence:
       timestep = env.step(task.normalize_joint_targets(target))
       count += 1

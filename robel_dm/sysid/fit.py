@@ -310,6 +310,7 @@ def fit(
   *,
   parameters: tuple[str, ...] = calibration_lib.PARAMETERS,
   fit_delay: bool = True,
+  use_currents: bool = True,
   max_evaluations: int = 200,
   source: dict[str, Any] | None = None,
 ) -> FitResult:
@@ -321,6 +322,8 @@ def fit(
     parameters: which of `calibration.PARAMETERS` to fit; the others keep
       the model's values.
     fit_delay: search the control delay (else 0).
+    use_currents: fit the measured currents too, when every trajectory has
+      them.
     max_evaluations: simulations per least-squares fit.
     source: recorded in the calibration's `fit` entry (e.g. directories).
 
@@ -338,7 +341,9 @@ def fit(
     )
   parameters = tuple(p for p in calibration_lib.PARAMETERS if p in parameters)
   simulator = ReplaySimulator(domain)
-  use_current = all(t.current is not None for t in trajectories)
+  use_current = use_currents and all(
+    t.current is not None for t in trajectories
+  )
   problem = _Problem(simulator, trajectories, parameters, use_current)
   rms_before = _rms_angle_error(problem, None, 0)
   x = problem.start()
