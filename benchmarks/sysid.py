@@ -138,7 +138,7 @@ def main():
     'joint after/before) | flagged | off >15% unflagged | fit s '
     '(simulations) |'
   )
-  print('|' + '---|' * 14)
+  print('|' + '---|' * 13)
   for domain in ('dclaw', 'dkitty'):
     for signal in excite.SIGNALS:
       for use_current in (True, False):

@@ -312,6 +312,7 @@ def fit(
   fit_delay: bool = True,
   use_currents: bool = True,
   max_evaluations: int = 200,
+  polish_evaluations: int = 10,
   source: dict[str, Any] | None = None,
 ) -> FitResult:
   """Fits joint dynamics (and the control delay) to excitation episodes.
@@ -324,7 +325,11 @@ def fit(
     fit_delay: search the control delay (else 0).
     use_currents: fit the measured currents too, when every trajectory has
       them.
-    max_evaluations: simulations per least-squares fit.
+    max_evaluations: function evaluations per least-squares fit with the
+      block Jacobian (each Jacobian costs 5 more simulations).
+    polish_evaluations: function evaluations of the final polish with the
+      full Jacobian (each Jacobian costs one simulation per parameter); 0
+      skips it.
     source: recorded in the calibration's `fit` entry (e.g. directories).
 
   Returns:
@@ -377,6 +382,20 @@ def fit(
       break
     delay = next(d for d in neighbours if fits[d] is best)
     result = best
+  if polish_evaluations:
+    # The block Jacobian ignores how joints move each other; near the end
+    # that can stall a joint in a wrong basin (trading friction for
+    # damping). A few steps with the full Jacobian leave it, and give the
+    # covariance behind the uncertainties.
+    result = optimize.least_squares(
+      problem.residuals,
+      result.x,
+      bounds=problem.bounds(),
+      diff_step=DIFF_STEP,
+      x_scale='jac',
+      max_nfev=polish_evaluations,
+      args=(delay,),
+    )
   x = result.x
   fitted = problem.values(x)
   uncertainty = _uncertainty(problem, result, fitted)
