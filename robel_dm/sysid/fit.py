@@ -134,6 +134,23 @@ class ReplaySimulator:
     self.substeps = round(task.control_timestep / self.model.opt.timestep)
     self.timestep = float(self.model.opt.timestep)
     self.nominal = self.values()
+    self.chains = self._chains(np.asarray(joints.element_id, int))
+
+  def _chains(self, joint_ids: np.ndarray) -> np.ndarray:
+    """Each joint's kinematic chain (a finger, a leg): the index of the
+    topmost jointed body above it. The robot's base is fixed and nothing
+    touches it, so one chain's motion does not depend on another's
+    parameters."""
+    model = self.model
+    tops = []
+    for joint in joint_ids:
+      body = top = int(model.jnt_bodyid[joint])
+      while body:
+        if model.body_jntnum[body]:
+          top = body
+        body = int(model.body_parentid[body])
+      tops.append(top)
+    return np.unique(tops, return_inverse=True)[1]
 
   def values(self) -> dict[str, np.ndarray]:
     """The model's current parameters, per joint."""
@@ -280,10 +297,11 @@ class _Problem:
     return np.concatenate(parts)
 
   def sparsity(self, rows: int) -> sparse.csr_matrix:
-    """Each joint's residuals depend (mostly) on its own parameters."""
-    row_joint = np.arange(rows) % self.joints
-    col_joint = np.tile(np.arange(self.joints), len(self.parameters))
-    return sparse.csr_matrix(row_joint[:, None] == col_joint[None, :])
+    """A joint's residuals depend on the parameters of its chain only."""
+    chains = self.simulator.chains
+    row_chain = chains[np.arange(rows) % self.joints]
+    col_chain = np.tile(chains, len(self.parameters))
+    return sparse.csr_matrix(row_chain[:, None] == col_chain[None, :])
 
 
 def _rms_angle_error(problem, x, delay) -> np.ndarray:
@@ -312,7 +330,6 @@ def fit(
   fit_delay: bool = True,
   use_currents: bool = True,
   max_evaluations: int = 200,
-  polish_evaluations: int = 10,
   source: dict[str, Any] | None = None,
 ) -> FitResult:
   """Fits joint dynamics (and the control delay) to excitation episodes.
@@ -325,11 +342,8 @@ def fit(
     fit_delay: search the control delay (else 0).
     use_currents: fit the measured currents too, when every trajectory has
       them.
-    max_evaluations: function evaluations per least-squares fit with the
-      block Jacobian (each Jacobian costs 5 more simulations).
-    polish_evaluations: function evaluations of the final polish with the
-      full Jacobian (each Jacobian costs one simulation per parameter); 0
-      skips it.
+    max_evaluations: function evaluations per least-squares fit (each
+      Jacobian costs one simulation per parameter of a chain, plus one).
     source: recorded in the calibration's `fit` entry (e.g. directories).
 
   Returns:
@@ -377,25 +391,11 @@ def fit(
     neighbours = [
       d for d in (delay - 1, delay + 1) if 0 <= d < simulator.substeps
     ]
-    best = min((fit_at(d, result.x) for d in neighbours), key=lambda r: r.cost)
-    if best.cost >= result.cost:
+    candidates = {d: fit_at(d, result.x) for d in neighbours}
+    best = min(candidates, key=lambda d: candidates[d].cost)
+    if candidates[best].cost >= result.cost:
       break
-    delay = next(d for d in neighbours if fits[d] is best)
-    result = best
-  if polish_evaluations:
-    # The block Jacobian ignores how joints move each other; near the end
-    # that can stall a joint in a wrong basin (trading friction for
-    # damping). A few steps with the full Jacobian leave it, and give the
-    # covariance behind the uncertainties.
-    result = optimize.least_squares(
-      problem.residuals,
-      result.x,
-      bounds=problem.bounds(),
-      diff_step=DIFF_STEP,
-      x_scale='jac',
-      max_nfev=polish_evaluations,
-      args=(delay,),
-    )
+    delay, result = best, candidates[best]
   x = result.x
   fitted = problem.values(x)
   uncertainty = _uncertainty(problem, result, fitted)
