@@ -1,4 +1,5 @@
-"""Timing constants shared by every ROBEL task.
+"""Constants shared across robel_dm's layers: ROBEL's timing, noise, and
+the device name of the in-process virtual servo bus.
 
 ROBEL's numbers: docs/robel_reference.md section 1.
 """
@@ -13,3 +14,6 @@ CONTROL_TIMESTEP = 0.1
 # ROBEL's sim observation noise in RandomDynamics variants: a fraction of each
 # joint's range width (noise = fraction * U(-0.5, 0.5) * width).
 OBSERVATION_NOISE_FRACTION = 0.05
+
+# `device_path` of the in-process virtual servo bus (see suite.load).
+VIRTUAL_DEVICE = 'virtual'

@@ -31,8 +31,6 @@ from robel_dm.tasks import (  # noqa: F401  (imported to register the tasks)
 # A calibration: a `calibration.Calibration` or the path of its file.
 Dynamics = calibration_lib.Calibration | str | os.PathLike
 
-# `device_path` of the in-process virtual bus (hardware.environment's).
-_VIRTUAL_DEVICE = 'virtual'
 # Half a physics step, s: absorbs rounding in the accumulated physics time.
 _TIME_LIMIT_MARGIN = constants.PHYSICS_TIMESTEP / 2
 
@@ -241,10 +239,11 @@ def _environment(
   calibration = None
   if dynamics is not None:
     calibration = calibration_lib.resolve(dynamics)
-    if device_path not in (None, _VIRTUAL_DEVICE):
+    if device_path not in (None, constants.VIRTUAL_DEVICE):
       raise ValueError(
         f'dynamics= calibrates a simulated robot; the robot on '
-        f'{device_path} has its own (device_path=None or {_VIRTUAL_DEVICE!r})'
+        f'{device_path} has its own (device_path=None or '
+        f'{constants.VIRTUAL_DEVICE!r})'
       )
   if device_path is None:
     given = [name for name, value in hardware_options.items() if value]

@@ -75,7 +75,6 @@ VELOCITY_TRAJECTORY = Item(136, 4, signed=True, writable=False)
 POSITION_TRAJECTORY = Item(140, 4, signed=True, writable=False)
 PRESENT_INPUT_VOLTAGE = Item(144, 2, writable=False)
 PRESENT_TEMPERATURE = Item(146, 1, writable=False)
-VOLTS_PER_UNIT = 0.1  # Present Input Voltage's unit, V.
 
 # Indirect addressing: Indirect Address n (2 bytes) holds the address (64..661)
 # that Indirect Data n (1 byte) reads and writes. Entries 1-28 and 29-56 sit
@@ -135,14 +134,13 @@ ALERT_BIT = 0x80
 RADIANS_PER_TICK = 2 * math.pi / 4096
 RADIANS_PER_SECOND_PER_UNIT = 0.229 * 2 * math.pi / 60  # 0.229 rpm.
 VOLTS_PER_UNIT = 0.1
-
-# Model number -> (name, current unit in mA). W-series 2.69 mA, V-series
-# 1.34 mA (docs/dynamixel.md section 2).
 # Joint torque per ampere of motor current, N m/A: an X430 stalls at about
 # 4.8 N m and 2.2 A. The virtual bus reports currents with it, and system
 # identification predicts them with it (real servos are only roughly linear).
 TORQUE_PER_AMPERE = 2.2
 
+# Model number -> (name, current unit in mA). W-series 2.69 mA, V-series
+# 1.34 mA (docs/dynamixel.md section 2).
 MODELS = {
   1000: ('XH430-W350', 2.69),
   1010: ('XH430-W210', 2.69),

@@ -19,6 +19,7 @@ import weakref
 
 from dm_control import composer, mjcf
 
+from robel_dm import constants
 from robel_dm import environment as environment_lib
 from robel_dm.hardware import clock as clock_lib
 from robel_dm.hardware import config as config_lib
@@ -27,7 +28,7 @@ from robel_dm.hardware import physics as physics_lib
 from robel_dm.hardware import robot as robot_lib
 from robel_dm.hardware import robot_io as robot_io_lib
 
-VIRTUAL_DEVICE = 'virtual'
+VIRTUAL_DEVICE = constants.VIRTUAL_DEVICE
 
 # Builds the simulated environment a virtual bus's motors follow.
 SceneFactory = Callable[[], composer.Environment]
