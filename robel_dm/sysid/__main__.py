@@ -115,6 +115,17 @@ def fit(directories: list[str]) -> int:
   return 0
 
 
+def _cell(result: fit_lib.FitResult, joint: int, parameter: str) -> str:
+  """A fitted value, '?' if not identified, and its ratio to the model's."""
+  value = result.fitted[parameter][joint]
+  name = f'{result.joint_names[joint]}.{parameter}'
+  flag = '?' if name in result.not_identified else ' '
+  nominal = result.nominal[parameter][joint]
+  if nominal <= 0:  # No ratio to a model value of zero (friction loss).
+    return f'{value:>13.4g}{flag}'
+  return f'{value:>10.4g}{flag}{value / nominal:>3.1f}x'
+
+
 def report(result: fit_lib.FitResult) -> str:
   """The fit as a table: per joint, the values and the angle error."""
   names = list(result.fitted)
@@ -122,15 +133,7 @@ def report(result: fit_lib.FitResult) -> str:
   header += f'{"RMS error (deg): model":>26}{"fit":>8}'
   lines = [header]
   for j, joint in enumerate(result.joint_names):
-    cells = ''.join(
-      f'{result.fitted[n][j]:>10.4g}'
-      + ('?' if f'{joint}.{n}' in result.not_identified else ' ')
-      + f'{result.fitted[n][j] / result.nominal[n][j]:>3.1f}x'
-      if result.nominal[n][j] > 0
-      else f'{result.fitted[n][j]:>13.4g}'
-      + ('?' if f'{joint}.{n}' in result.not_identified else ' ')
-      for n in names
-    )
+    cells = ''.join(_cell(result, j, n) for n in names)
     before, after = np.degrees([result.rms_before[j], result.rms_after[j]])
     lines.append(f'{joint:<8}{cells}{before:>26.3f}{after:>8.3f}')
   lines.append(

@@ -279,6 +279,21 @@ class _Problem:
       high.append(np.full(self.joints, bounds[1]))
     return np.concatenate(low), np.concatenate(high)
 
+  @property
+  def components(self) -> int:
+    """Residuals per joint and step: angle, velocity (, current)."""
+    return 3 if self.use_current else 2
+
+  @property
+  def rows(self) -> int:
+    steps = sum(len(t.targets) - 1 for t in self.trajectories)
+    return steps * self.components * self.joints
+
+  def angle_rms(self, residuals: np.ndarray) -> np.ndarray:
+    """Per-joint RMS angle error (rad) of a residual vector."""
+    angles = residuals.reshape(-1, self.components, self.joints)[:, 0]
+    return np.sqrt(np.mean(np.square(angles), axis=0)) * POSITION_SCALE
+
   def residuals(self, x: np.ndarray | None, delay: int) -> np.ndarray:
     values = self.simulator.nominal if x is None else self.values(x)
     self.simulator.set_values(values)
@@ -296,22 +311,12 @@ class _Problem:
       parts.append(np.stack(components, axis=1).ravel())
     return np.concatenate(parts)
 
-  def sparsity(self, rows: int) -> sparse.csr_matrix:
+  def sparsity(self) -> sparse.csr_matrix:
     """A joint's residuals depend on the parameters of its chain only."""
     chains = self.simulator.chains
-    row_chain = chains[np.arange(rows) % self.joints]
+    row_chain = chains[np.arange(self.rows) % self.joints]
     col_chain = np.tile(chains, len(self.parameters))
     return sparse.csr_matrix(row_chain[:, None] == col_chain[None, :])
-
-
-def _rms_angle_error(problem, x, delay) -> np.ndarray:
-  errors = []
-  values = problem.simulator.nominal if x is None else problem.values(x)
-  problem.simulator.set_values(values)
-  for trajectory in problem.trajectories:
-    qpos, _, _ = problem.simulator.simulate(trajectory, delay)
-    errors.append(qpos - trajectory.qpos[1:])
-  return np.sqrt(np.mean(np.square(np.concatenate(errors)), axis=0))
 
 
 def _best_delay(problem, x) -> int:
@@ -364,10 +369,10 @@ def fit(
     t.current is not None for t in trajectories
   )
   problem = _Problem(simulator, trajectories, parameters, use_current)
-  rms_before = _rms_angle_error(problem, None, 0)
+  rms_before = problem.angle_rms(problem.residuals(None, 0))
   x = problem.start()
   delay = _best_delay(problem, None) if fit_delay else 0
-  rows = len(problem.residuals(x, delay))
+  bounds, sparsity = problem.bounds(), problem.sparsity()
   fits: dict[int, Any] = {}
 
   def fit_at(delay: int, start: np.ndarray):
@@ -375,8 +380,8 @@ def fit(
       fits[delay] = optimize.least_squares(
         problem.residuals,
         start,
-        bounds=problem.bounds(),
-        jac_sparsity=problem.sparsity(rows),
+        bounds=bounds,
+        jac_sparsity=sparsity,
         diff_step=DIFF_STEP,
         x_scale='jac',
         max_nfev=max_evaluations,
@@ -399,12 +404,9 @@ def fit(
   x = result.x
   fitted = problem.values(x)
   uncertainty = _uncertainty(problem, result, fitted)
-  rms_after = _rms_angle_error(problem, x, delay)
+  rms_after = problem.angle_rms(result.fun)
   names = simulator.joint_names
-  low, high = (
-    problem.values(problem.bounds()[0]),
-    problem.values(problem.bounds()[1]),
-  )
+  low, high = problem.values(bounds[0]), problem.values(bounds[1])
   not_identified = [
     f'{names[j]}.{name}'
     for name in parameters
