@@ -202,7 +202,6 @@ class HardwareRobot:
     if not force and self._steps_since_check < self._health.check_every:
       return
     self._steps_since_check = 0
-    self.health_time = time.monotonic()
     # A motor with an error stops the robot here; otherwise every bit is 0.
     self._client.raise_on_hardware_errors()
     self.hardware_errors[:] = 0
@@ -211,6 +210,7 @@ class HardwareRobot:
     values = np.array([block[i] for i in ids], dtype=np.int64)
     self.voltages[:] = (values & 0xFFFF) * table.VOLTS_PER_UNIT
     self.temperatures[:] = (values >> 16) & 0xFF
+    self.health_time = time.monotonic()
     temperatures = dict(zip(ids, self.temperatures.tolist(), strict=True))
     hot = {
       i: t for i, t in temperatures.items() if t > self._health.max_temperature

@@ -118,7 +118,7 @@ def export(
 
   Raises:
     RecordingError: if `output` exists, the recording has no complete
-      episode, or its episodes differ in columns or rate.
+      episode, or its episodes differ in columns.
   """
   pa = format_lib.require_pyarrow()
   output = pathlib.Path(output)
@@ -142,7 +142,7 @@ def export(
   shutil.rmtree(staging, ignore_errors=True)
   (staging / 'meta').mkdir(parents=True)
   with (
-    open(staging / 'meta/episodes.jsonl', 'w') as episodes_file,
+    open(staging / format_lib.EPISODES, 'w') as episodes_file,
     open(staging / 'meta/episodes_stats.jsonl', 'w') as stats_file,
   ):
     for episode_index, episode in enumerate(episodes):
@@ -214,6 +214,6 @@ def export(
       'robot': info.get('robot'),
     },
   }
-  (staging / 'meta/info.json').write_text(json.dumps(dataset_info, indent=1))
+  (staging / format_lib.INFO).write_text(json.dumps(dataset_info, indent=1))
   os.replace(staging, output)
   return dataset_info

@@ -72,7 +72,6 @@ class Recorder(dm_env.Environment):
     self._writer: format_lib.EpisodeWriter | None = None
     self._frame = 0
     self._start_wall = 0.0
-    self._last_action = None
 
   def __getattr__(self, name):
     return getattr(self._env, name)

@@ -99,9 +99,8 @@ class JointExcitation(base.RobelTask):
 
   def action_range(self, physics) -> tuple[np.ndarray, np.ndarray]:
     """The joint targets actions can reach (low, high), rad."""
-    action_map = self._action_map
-    del physics
-    return action_map.low.copy(), action_map.high.copy()
+    del physics  # The action map was bound to it when it compiled.
+    return self._action_map.low.copy(), self._action_map.high.copy()
 
   def _initialize_state(self, physics, random_state) -> None:
     del random_state
