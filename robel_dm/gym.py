@@ -15,6 +15,11 @@ signals never enter the observation: `info` holds `score`, `success`,
 `safety` (violations this step per counter) and `reward_terms`. A D'Kitty
 fall is `terminated`; the end of the time limit is `truncated`.
 
+`step` checks the action as the robel_dm environment does (shape, real
+numbers, finite, in [-1, 1] unless the task clips) and raises its
+ValueError before anything reaches the environment; stepping before the
+first `reset` or after an episode ended raises `ResetNeededError`.
+
 Ids: ROBEL's (`DClawPoseFixed-v0` ... `DKittyWalkRandomDynamics-v0`) and,
 for Turn and Screw with the 4-prong valve, `DClawTurnFixedValve4-v0` etc.
 `gym.make(id, seed=..., task_kwargs=..., device_path=..., ...)` passes
@@ -60,6 +65,15 @@ def env_ids() -> dict[str, tuple[str, str, dict]]:
         dict(_VALVE4),
       )
   return ids
+
+
+class ResetNeededError(gymnasium.error.ResetNeeded, RuntimeError):
+  """`step` before the first `reset` or after the episode ended.
+
+  Both Gymnasium's error for this (the one `gymnasium.make`'s order check
+  raises before the first reset) and a RuntimeError (what the adapter
+  raised before the first reset in earlier versions).
+  """
 
 
 class RobelEnv(gymnasium.Env):
@@ -117,6 +131,7 @@ class RobelEnv(gymnasium.Env):
       -1.0, 1.0, shape=action_spec.shape, dtype=np.float32
     )
     self._timestep: dm_env.TimeStep | None = None
+    self._needs_reset = True
 
   @property
   def robel_env(self) -> dm_env.Environment:
@@ -151,14 +166,40 @@ class RobelEnv(gymnasium.Env):
     if seed is not None:
       self._env.random_state.seed(seed)
     self._timestep = self._env.reset()
+    self._needs_reset = False
     return self._observation(self._timestep), self._info(self._timestep)
 
   def step(self, action):
-    if self._timestep is None:
-      raise RuntimeError('call reset() before step()')
-    timestep = self._env.step(np.asarray(action, dtype=np.float64))
+    """Applies an action for one control step.
+
+    Args:
+      action: one normalized joint target per actuator, real numbers in
+        [-1, 1] (any array-like the robel_dm environment accepts).
+
+    Returns:
+      (observation, reward, terminated, truncated, info).
+
+    Raises:
+      ResetNeededError: before the first `reset` or after the episode ended.
+      ValueError: for an action the robel_dm environment rejects (wrong
+        shape, not real numbers, not finite, outside [-1, 1]); nothing is
+        sent to the environment.
+    """
+    if self._needs_reset:
+      raise ResetNeededError(
+        'call reset() before step()'
+        if self._timestep is None
+        else 'the episode ended: call reset() before step()'
+      )
+    # The task's own check, so that exactly what the environment rejects is
+    # rejected, with its message, before the environment sees the action
+    # (a plain float conversion would let complex numbers, numeric strings
+    # and objects through).
+    action = self._env.task._validated_action(action)  # noqa: SLF001
+    timestep = self._env.step(action)
     self._timestep = timestep
     last = timestep.last()
+    self._needs_reset = last
     terminated = last and timestep.discount == 0.0
     truncated = last and not terminated
     return (
