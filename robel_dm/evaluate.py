@@ -20,8 +20,20 @@ from absl import app, flags, logging
 import numpy as np
 import tqdm
 
-from robel_dm import parallel, policies, provenance, recording, suite, video
+from robel_dm import (
+  cli_checks,
+  parallel,
+  policies,
+  provenance,
+  recording,
+  suite,
+  video,
+)
 from robel_dm.tasks import base
+
+# Kept here for callers of the command's module.
+check_output = cli_checks.check_output
+write_json = cli_checks.write_json
 
 
 def parse_task_kwargs(text: str) -> dict[str, Any]:
@@ -215,6 +227,9 @@ def evaluate(
       'workers > 1 and ray_address need a simulated task, a seed, no video, '
       'no dynamics, and a policy given by name or path'
     )
+  # A policy file is read and checked against the task before anything is
+  # built (and a robot moves); None for policies that are not files.
+  checked = policies.check_file(policy, domain, task, task_kwargs)
   if tracker is not None:
     from robel_dm.hardware import tracker_spec  # noqa: PLC0415
 
@@ -270,6 +285,8 @@ def evaluate(
       act = policy
       if isinstance(policy, policies.NumpyPolicy):
         policy.check_task(domain, task, task_kwargs)
+    elif checked is not None:
+      act = checked
     else:
       act = policies.make_policy(policy, env, seed, domain, task, task_kwargs)
     if workers > 1 or ray_address:
@@ -403,28 +420,6 @@ def select_tasks(domain: str, task: str) -> list[tuple[str, str]]:
   return selected
 
 
-def check_output(path: str | None) -> None:
-  """Fails before the first episode if the results cannot be written."""
-  if not path:
-    return
-  directory = os.path.dirname(os.path.abspath(path))
-  if not os.path.isdir(directory):
-    raise ValueError(f'--output: no folder {directory}')
-  if not os.access(directory, os.W_OK) or (
-    os.path.exists(path) and not os.access(path, os.W_OK)
-  ):
-    raise ValueError(f'--output: cannot write {path}')
-
-
-def write_json(path: str, data) -> None:
-  """Writes `data` atomically: a reader (or an interruption) never sees a
-  half-written file."""
-  temporary = f'{path}.partial'
-  with open(temporary, 'w') as file:
-    json.dump(data, file, indent=2)
-  os.replace(temporary, path)
-
-
 def _define_flags() -> None:
   """The command line's flags (defined only when run as a program, so that
   importing this module defines none)."""
@@ -469,8 +464,8 @@ def _define_flags() -> None:
     'policy',
     'random',
     'Policy to evaluate: random, zero, reference (scripted), baseline (the '
-    "task's shipped trained policy), or the path of a policy.npz or a "
-    'Stable-Baselines3 .zip written by robel_dm.train.',
+    "task's shipped trained policy), or the path of a policy.npz written "
+    'by robel_dm.train.',
   )
   flags.DEFINE_string(
     'task_kwargs',
@@ -531,13 +526,25 @@ def main(argv):
     task_kwargs = parse_task_kwargs(FLAGS.task_kwargs)
     tasks = select_tasks(FLAGS.domain, FLAGS.task)
     check_output(FLAGS.output)
+    for domain, task in tasks:  # Every task's policy file, before any runs.
+      policies.check_file(FLAGS.policy, domain, task, task_kwargs)
     sweep = len(tasks) > 1
     progress = tqdm.tqdm(
       total=len(tasks) * FLAGS.episodes, unit='episode', file=sys.stderr,
       disable=not sys.stderr.isatty(),
     )  # fmt: skip
 
+    saved = [0]  # Episodes in --output.
+
     def save(partial):
+      # Saved, then printed: a printed row is in --output whenever Ctrl-C
+      # lands (a failed write stops the run, unprinted).
+      if FLAGS.output:
+        everything = [*finished, partial]
+        cli_checks.save(
+          FLAGS.output, everything if sweep else partial, saved[0]
+        )
+        saved[0] = sum(len(r['records']) for r in everything)
       progress.update(1)
       progress.clear()
       if len(partial['records']) == 1:
@@ -545,9 +552,6 @@ def main(argv):
       index = len(partial['records']) - 1
       print(format_row(index, partial['records'][-1]), flush=True)
       progress.refresh()
-      if FLAGS.output:
-        everything = [*finished, partial]
-        write_json(FLAGS.output, everything if sweep else partial)
 
     for domain, task in tasks:
       results = evaluate(

@@ -18,12 +18,15 @@ observation keys, in the order the flat input concatenates them.
 from collections.abc import Callable
 import json
 import pathlib
+import re
 from typing import Any
+import zipfile
+import zlib
 
 import dm_env
 import numpy as np
 
-from robel_dm import assets
+from robel_dm import assets, registry, suite
 
 Policy = Callable[[dm_env.TimeStep], np.ndarray]
 
@@ -112,8 +115,11 @@ class NumpyPolicy:
       raise PolicyError(
         'a policy needs as many bias vectors as weight matrices'
       )
-    self._weights = [np.asarray(w, np.float64) for w in weights]
-    self._biases = [np.asarray(b, np.float64) for b in biases]
+    self._weights = [
+      _real_array(w, f'weight_{i}') for i, w in enumerate(weights)
+    ]
+    self._biases = [_real_array(b, f'bias_{i}') for i, b in enumerate(biases)]
+    _check_layers(self._weights, self._biases)
     self._activation = _ACTIVATIONS[activation]
     self._output = _OUTPUTS[output]
     self.activation, self.output = activation, output
@@ -130,6 +136,10 @@ class NumpyPolicy:
   @property
   def input_size(self) -> int:
     return self._weights[0].shape[1]
+
+  @property
+  def output_size(self) -> int:
+    return self._weights[-1].shape[0]
 
   def act(self, observation: np.ndarray) -> np.ndarray:
     """The action for a flat observation vector (or a batch of them)."""
@@ -183,29 +193,227 @@ class NumpyPolicy:
       )
 
 
+def _real_array(value, name: str) -> np.ndarray:
+  array = np.asarray(value)
+  if array.dtype.kind not in 'fiu':
+    raise PolicyError(f'{name} holds {array.dtype} values, not numbers')
+  array = array.astype(np.float64)
+  if not np.all(np.isfinite(array)):
+    raise PolicyError(f'{name} holds non-finite values')
+  return array
+
+
+def _check_layers(weights: list[np.ndarray], biases: list[np.ndarray]) -> None:
+  """Raises `PolicyError` unless the layers chain: weight_i is (out, in),
+  bias_i is (out,), and each layer takes the previous layer's output."""
+  for i, (weight, bias) in enumerate(zip(weights, biases, strict=True)):
+    if weight.ndim != 2 or 0 in weight.shape:
+      raise PolicyError(f'weight_{i} has shape {weight.shape}, not (out, in)')
+    if bias.shape != weight.shape[:1]:
+      raise PolicyError(
+        f'bias_{i} has shape {bias.shape}, weight_{i} needs '
+        f'({weight.shape[0]},)'
+      )
+    if i and weight.shape[1] != weights[i - 1].shape[0]:
+      raise PolicyError(
+        f'weight_{i} takes {weight.shape[1]} inputs, layer {i - 1} gives '
+        f'{weights[i - 1].shape[0]}'
+      )
+
+
+# What a damaged archive can raise while numpy reads it.
+_READ_ERRORS = (
+  OSError,
+  EOFError,
+  ValueError,
+  KeyError,
+  NotImplementedError,
+  RuntimeError,  # An encrypted member.
+  zipfile.BadZipFile,
+  zlib.error,
+)
+_LAYER = re.compile(r'(weight|bias)_(0|[1-9][0-9]*)')
+_FIELDS = ('activation', 'output', 'metadata')
+
+
+def _one_line(error: BaseException) -> str:
+  """An error as one line: its type, then its message if it has one."""
+  message = ' '.join(str(error).split())
+  name = type(error).__name__
+  return f'{name}: {message}' if message else name
+
+
+def _read_arrays(path: pathlib.Path) -> dict[str, np.ndarray]:
+  """The arrays of a .npz file (raises `PolicyError` without the path)."""
+  if path.stat().st_size == 0:
+    raise PolicyError('the file is empty')
+  with open(path, 'rb') as file:  # Unreadable: OSError, named by `load`.
+    if not zipfile.is_zipfile(file):
+      raise PolicyError('not an .npz archive (truncated or another format)')
+  try:
+    with np.load(path, allow_pickle=False) as data:
+      return {name: data[name] for name in data.files}
+  except _READ_ERRORS as error:
+    raise PolicyError(f'unreadable ({_one_line(error)})') from error
+
+
+def _from_arrays(arrays: dict[str, np.ndarray]) -> NumpyPolicy:
+  """A policy from a policy.npz's arrays (raises `PolicyError` without the
+  path)."""
+  missing = [name for name in _FIELDS if name not in arrays]
+  if missing:
+    raise PolicyError(f'no {", ".join(missing)} array')
+  layers = {'weight': set(), 'bias': set()}
+  unexpected = []
+  for name in arrays:
+    match = _LAYER.fullmatch(name)
+    if match:
+      layers[match[1]].add(int(match[2]))
+    elif name not in _FIELDS:
+      unexpected.append(name)
+  if unexpected:
+    raise PolicyError(f'unexpected arrays {sorted(unexpected)}')
+  count = len(layers['weight'])
+  expected = set(range(count))
+  if not count or not layers['weight'] == layers['bias'] == expected:
+    raise PolicyError(
+      'the layers must be weight_0.., bias_0.. with one bias per weight; '
+      f'found weights {sorted(layers["weight"])}, biases '
+      f'{sorted(layers["bias"])}'
+    )
+  try:
+    metadata = json.loads(str(arrays['metadata']))
+  except ValueError as error:
+    raise PolicyError(f'metadata is not JSON ({error})') from None
+  if not isinstance(metadata, dict):
+    raise PolicyError('metadata is not a JSON object')
+  keys = metadata.get('observation_keys')
+  if not (
+    isinstance(keys, list) and keys and all(isinstance(k, str) for k in keys)
+  ):
+    raise PolicyError('metadata names no observation_keys')
+  if not isinstance(metadata.get('task_kwargs', {}), dict):
+    raise PolicyError('metadata task_kwargs is not a JSON object')
+  return NumpyPolicy(
+    [arrays[f'weight_{i}'] for i in range(count)],
+    [arrays[f'bias_{i}'] for i in range(count)],
+    str(arrays['activation']),
+    str(arrays['output']),
+    metadata,
+  )
+
+
 def load(path: str | pathlib.Path) -> NumpyPolicy:
-  """Loads a `policy.npz`.
+  """Loads a `policy.npz`, checking that it is whole and well formed.
 
   Raises:
-    PolicyError: if the file is missing or is not a policy.
+    PolicyError: if the file is missing, unreadable or not a policy (one
+      line naming the file and what is wrong).
   """
   path = pathlib.Path(path)
   if not path.is_file():
     raise PolicyError(f'no policy file {path}')
   try:
-    with np.load(path, allow_pickle=False) as data:
-      layers = sum(1 for name in data.files if name.startswith('weight_'))
-      return NumpyPolicy(
-        [data[f'weight_{i}'] for i in range(layers)],
-        [data[f'bias_{i}'] for i in range(layers)],
-        str(data['activation']),
-        str(data['output']),
-        json.loads(str(data['metadata'])),
-      )
-  except (OSError, KeyError, ValueError) as error:
-    if isinstance(error, PolicyError):
+    return _from_arrays(_read_arrays(path))
+  except OSError as error:  # Unreadable: permissions, I/O errors.
+    raise PolicyError(
+      f'cannot read {path}: {error.strerror or error}'
+    ) from None
+  except PolicyError as error:
+    raise PolicyError(f'{path} is not a robel_dm policy: {error}') from None
+
+
+def _check_sizes(
+  policy: NumpyPolicy,
+  where: str,
+  keys: tuple[str, ...],
+  observation_size: int,
+  action_size: int,
+) -> None:
+  """Raises `PolicyError` unless the policy reads `keys` (in order) and maps
+  `observation_size` values to `action_size` actions."""
+  if policy.observation_keys != tuple(keys):
+    raise PolicyError(
+      f'the policy reads {policy.observation_keys}, {where} offers {keys}'
+    )
+  if policy.input_size != observation_size:
+    raise PolicyError(
+      f'the policy takes {policy.input_size} observation values, {where} '
+      f'gives {observation_size}'
+    )
+  if policy.output_size != action_size:
+    raise PolicyError(
+      f'the policy gives {policy.output_size} actions, {where} takes '
+      f'{action_size}'
+    )
+
+
+def _task_sizes(domain: str, task: str, task_kwargs) -> tuple:
+  """The agent's observation keys, observation size and action size of a
+  task, from a task instance (no environment, no robot)."""
+  try:
+    instance = registry.DOMAINS[domain][task](**(task_kwargs or {}))
+  except TypeError as error:
+    if 'keyword argument' not in str(error):
       raise
-    raise PolicyError(f'{path} is not a robel_dm policy: {error}') from error
+    raise ValueError(f'bad task_kwargs for {domain}/{task}: {error}') from None
+  keys = instance.agent_observation_keys
+  size = sum(instance.FEATURES[key] for key in keys)
+  return keys, size, len(instance.robot.actuators)
+
+
+def check_file(
+  name: str | Any, domain: str, task: str, task_kwargs: dict | None = None
+) -> NumpyPolicy | None:
+  """Checks a policy named by path (or 'baseline') before any environment
+  is built: the file is there and whole, and fits the task (trained on it,
+  its observation keys and sizes, its action size).
+
+  Args:
+    name: the policy as `make_policy` takes it (other values pass).
+    domain: the task's domain.
+    task: the task's name.
+    task_kwargs: the task's arguments.
+
+  Returns:
+    The loaded policy of a policy.npz, else None.
+
+  Raises:
+    PolicyError: naming the file and what is wrong.
+    ValueError: for an unknown policy name or bad task arguments.
+  """
+  tasks = suite.TASKS_BY_DOMAIN.get(domain, ())
+  if not isinstance(name, str) or task not in tasks:
+    return None  # Not a name, or suite.load names the unknown task.
+  if name in BUILT_IN or name.startswith(REPLAY):
+    return None
+  path = baseline_path(domain, task) if name == BASELINE else pathlib.Path(name)
+  if path.suffix != '.npz':
+    raise _unknown_policy(name)
+  if not path.is_file():
+    raise PolicyError(f'no policy file {path}')
+  policy = load(path)
+  try:
+    policy.check_task(domain, task, task_kwargs)
+    keys, observation_size, action_size = _task_sizes(domain, task, task_kwargs)
+    _check_sizes(
+      policy, f'{domain}/{task}', keys, observation_size, action_size
+    )
+  except PolicyError as error:
+    raise PolicyError(f'{path}: {error}') from None
+  return policy
+
+
+def _unknown_policy(name: str) -> ValueError:
+  if name.endswith('.zip'):
+    return ValueError(
+      f'{name} is a training checkpoint (what --resume reads): evaluate the '
+      'policy.npz that train writes beside it'
+    )
+  return ValueError(
+    f'unknown policy {name!r}; expected one of {BUILT_IN + (BASELINE,)} or '
+    'the path of a policy.npz'
+  )
 
 
 def baseline_path(domain: str, task: str) -> pathlib.Path:
@@ -239,8 +447,7 @@ def make_policy(
     name: 'random' (uniform in the action bounds), 'zero' (the centre of
       every joint's range), 'reference' (the task's scripted controller),
       'baseline' (the shipped trained policy of the task), 'replay:DIR'
-      (a recording's actions), or the path of a `policy.npz` or a
-      Stable-Baselines3 `.zip`.
+      (a recording's actions), or the path of a `policy.npz`.
     env: an environment from `robel_dm.suite.load`.
     seed: seed of the random policy.
     domain: the environment's domain (for trained policies' task check).
@@ -275,30 +482,18 @@ def make_policy(
   if name == BASELINE:
     name = str(baseline_path(domain, task))
   path = pathlib.Path(name)
-  if path.suffix == '.npz' or path.suffix == '.zip':
-    if path.suffix == '.zip':
-      policy = _load_stable_baselines(path, env)
-    else:
-      policy = load(path)
+  if path.suffix == '.npz':
+    policy = load(path)
     if domain is not None:
       policy.check_task(domain, task, task_kwargs)
-    if policy.observation_keys != env.task.agent_observation_keys:
-      raise PolicyError(
-        f'the policy reads {policy.observation_keys}, the task offers '
-        f'{env.task.agent_observation_keys}'
-      )
+    keys = env.task.agent_observation_keys
+    observations = env.observation_spec()
+    _check_sizes(
+      policy,
+      'the task',
+      keys,
+      sum(int(np.prod(observations[key].shape)) for key in keys),
+      int(np.prod(spec.shape)),
+    )
     return policy
-  raise ValueError(
-    f'unknown policy {name!r}; expected one of {BUILT_IN + (BASELINE,)} or '
-    'the path of a policy.npz or Stable-Baselines3 .zip'
-  )
-
-
-def _load_stable_baselines(path: pathlib.Path, env) -> NumpyPolicy:
-  """A Stable-Baselines3 checkpoint's actor as a `NumpyPolicy` (needs the
-  learn extra); its task is read from the policy.npz beside it if any."""
-  if not path.is_file():
-    raise PolicyError(f'no policy file {path}')
-  from robel_dm import train  # noqa: PLC0415 (torch, only here)
-
-  return train.numpy_policy(train.load_model(path), train.read_metadata(path))
+  raise _unknown_policy(name)
