@@ -4,7 +4,6 @@ The adapter tests need Gymnasium; training and the numpy-equals-torch
 comparison need the `learn` extra (Stable-Baselines3 and torch).
 """
 
-import json
 import pathlib
 
 import numpy as np
@@ -184,105 +183,7 @@ def test_saved_policy_runs_on_the_virtual_bus(tmp_path):
   assert results['episodes'] == 1 and results['device_path'] == 'virtual'
 
 
-# --- Training (Stable-Baselines3) -------------------------------------------
-
-
-@pytest.fixture(scope='module')
-def trained_run(tmp_path_factory):
-  pytest.importorskip('stable_baselines3')
-  from robel_dm import train  # noqa: PLC0415
-
-  output = tmp_path_factory.mktemp('run')
-  history = train.train(
-    'dclaw',
-    'pose_fixed',
-    output,
-    steps=300,
-    eval_every=150,
-    eval_episodes=1,
-    hidden=(16, 16),
-    safety_penalty=0.5,
-    log=lambda line: None,
-  )
-  return output, history
-
-
-def test_training_writes_every_artefact(trained_run):
-  output, history = trained_run
-  for name in ('checkpoint.zip', 'replay_buffer.pkl', 'policy.npz',
-               'eval.jsonl', 'learning_curve.png', 'config.json',
-               'metadata.json'):  # fmt: skip
-    assert (output / name).is_file(), name
-  rows = [json.loads(line) for line in (output / 'eval.jsonl').open()]
-  assert (
-    [row['env_steps'] for row in rows]
-    == [150, 300]
-    == [row['env_steps'] for row in history]
-  )
-  assert set(rows[0]) >= {'env_steps', 'wall_time', 'success_rate',
-                          'mean_score', 'mean_return', 'safety'}  # fmt: skip
-  assert set(rows[0]['safety']) == {'position', 'velocity', 'current'}
-  config = json.loads((output / 'config.json').read_text())
-  assert config['safety_penalty'] == 0.5 and config['steps'] == 300
-
-
-def test_training_resumes_from_its_checkpoint(trained_run):
-  from robel_dm import train  # noqa: PLC0415
-
-  output, _ = trained_run
-  history = train.train(
-    'dclaw',
-    'pose_fixed',
-    output,
-    steps=450,
-    eval_every=150,
-    eval_episodes=1,
-    hidden=(16, 16),
-    resume=True,
-    log=lambda line: None,
-  )
-  assert [row['env_steps'] for row in history] == [150, 300, 450]
-  with pytest.raises(ValueError, match='is for dclaw/pose_fixed'):
-    train.train('dclaw', 'turn_fixed', output, steps=10, resume=True)
-
-
-def test_numpy_policy_equals_stable_baselines_prediction(trained_run):
-  from robel_dm import train  # noqa: PLC0415
-
-  output, _ = trained_run
-  model = train.load_model(output / 'checkpoint.zip')
-  numpy_policy = policies.load(output / 'policy.npz')
-  observations = np.random.default_rng(0).normal(size=(64, 27))
-  expected, _ = model.predict(
-    observations.astype(np.float32), deterministic=True
-  )
-  np.testing.assert_allclose(
-    numpy_policy.act(observations), expected, atol=1e-5
-  )
-
-
-def test_ppo_policy_exports_too(tmp_path):
-  pytest.importorskip('stable_baselines3')
-  from robel_dm import train  # noqa: PLC0415
-
-  train.train(
-    'dclaw', 'turn_fixed', tmp_path, algo='ppo', steps=128, eval_every=128,
-    eval_episodes=1, hidden=(8,), log=lambda line: None,
-  )  # fmt: skip
-  model = train.load_model(tmp_path / 'checkpoint.zip')
-  numpy_policy = policies.load(tmp_path / 'policy.npz')
-  observations = np.random.default_rng(1).normal(size=(32, 21))
-  expected, _ = model.predict(
-    observations.astype(np.float32), deterministic=True
-  )
-  np.testing.assert_allclose(
-    numpy_policy.act(observations), expected, atol=1e-5
-  )
-  # A Stable-Baselines3 checkpoint evaluates directly too.
-  results = evaluate.evaluate(
-    'dclaw', 'turn_fixed', 1, policy=str(tmp_path / 'checkpoint.zip')
-  )
-  assert results['episodes'] == 1
+# Training runs are tested in test_training.py.
 
 
 # --- Shipped baselines --------------------------------------------------------

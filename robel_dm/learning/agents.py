@@ -1,0 +1,244 @@
+"""The learning agents `train --algo=` offers, and what each one is.
+
+ROBEL's paper compares four kinds of agent; each kind has an agent here,
+from a named library (or, for behaviour cloning, this package):
+
+| name        | kind            | source                                   |
+|-------------|-----------------|------------------------------------------|
+| `sac`       | off-policy      | sbx-rl 0.28 `SAC` (SB3's API on JAX)     |
+| `sac_sb3`   | off-policy      | Stable-Baselines3 2.9.2 `SAC` (torch)    |
+| `ppo`       | on-policy       | Stable-Baselines3 2.9.2 `PPO` (torch)    |
+| `trpo`      | on-policy (NPG) | sb3-contrib 2.9.2 `TRPO` (torch)         |
+| `bc`        | imitation       | `robel_dm.learning.imitation` (JAX)      |
+| `sac_demos` | demo-augmented  | sbx `SAC` with the demonstrations kept   |
+|             |                 | in its replay buffer                     |
+
+`sac` is the default: the fastest way to ROBEL's success found on two CPU
+cores (benchmarks/training_speed.py measures it against `sac_sb3`, SB3's
+SAC with its defaults). Every agent learns on one CPU thread.
+"""
+
+import dataclasses
+import os
+from typing import Any
+
+from robel_dm import policies
+
+# One CPU thread per run (XLA reads this when JAX starts): two runs on two
+# cores beat one run on both.
+_XLA_ONE_THREAD = (
+  '--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1'
+)
+OFF_POLICY, ON_POLICY, IMITATION, DEMO_AUGMENTED = (
+  'off-policy',
+  'on-policy',
+  'imitation',
+  'demo-augmented',
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class Agent:
+  """What `train --algo=<name>` runs.
+
+  Attributes:
+    name: the `--algo` value.
+    kind: OFF_POLICY, ON_POLICY, IMITATION or DEMO_AUGMENTED.
+    paper: the column of ROBEL's paper it stands for (SAC, NPG, BC, DAPG).
+    source: the library and class (or module) that implements it.
+    hidden: hidden layer sizes of its networks.
+    hyperparameters: the library's constructor arguments robel_dm sets.
+    replay: whether it keeps a replay buffer (saved beside checkpoints).
+    needs_demos: whether it learns from demonstrations (`--demos`).
+  """
+
+  name: str
+  kind: str
+  paper: str
+  source: str
+  hidden: tuple[int, ...]
+  hyperparameters: dict[str, Any]
+  replay: bool = False
+  needs_demos: bool = False
+
+
+# The default agent's settings, chosen with benchmarks/training_speed.py:
+# 8 gradient steps every 8 env steps (one jitted call instead of eight),
+# learning from 500 steps, batches of 128 and a 1e-3 learning rate on
+# 256-unit layers.
+_FAST_SAC = {
+  'train_freq': 8,
+  'gradient_steps': 8,
+  'learning_starts': 500,
+  'batch_size': 128,
+  'learning_rate': 1e-3,
+}
+
+AGENTS: dict[str, Agent] = {
+  agent.name: agent
+  for agent in (
+    Agent(
+      'sac',
+      OFF_POLICY,
+      'SAC',
+      'sbx-rl 0.28.0 SAC (JAX)',
+      (256, 256),
+      _FAST_SAC,
+      replay=True,
+    ),
+    Agent(
+      'sac_sb3',
+      OFF_POLICY,
+      'SAC',
+      'stable-baselines3 2.9.2 SAC (torch), its defaults',
+      (256, 256),
+      {'learning_starts': 1000},
+      replay=True,
+    ),
+    Agent(
+      'ppo',
+      ON_POLICY,
+      'NPG',
+      'stable-baselines3 2.9.2 PPO (torch), its defaults',
+      (64, 64),
+      {},
+    ),
+    Agent(
+      'trpo',
+      ON_POLICY,
+      'NPG',
+      'sb3-contrib 2.9.2 TRPO (torch), its defaults',
+      (64, 64),
+      {},
+    ),
+    Agent(
+      'bc',
+      IMITATION,
+      'BC',
+      'robel_dm.learning.imitation (JAX): mean squared error on the '
+      'demonstrated actions',
+      (256, 256),
+      {'epochs': 300, 'batch_size': 256, 'learning_rate': 1e-3},
+      needs_demos=True,
+    ),
+    Agent(
+      'sac_demos',
+      DEMO_AUGMENTED,
+      'DAPG',
+      'sbx-rl 0.28.0 SAC (JAX), the demonstrations kept in its replay '
+      'buffer for the whole run',
+      (256, 256),
+      _FAST_SAC,
+      replay=True,
+      needs_demos=True,
+    ),
+  )
+}
+DEFAULT = 'sac'
+
+
+def get(name: str) -> Agent:
+  """The agent called `name`.
+
+  Raises:
+    ValueError: naming the agents there are.
+  """
+  if name not in AGENTS:
+    raise ValueError(f'algo must be one of {sorted(AGENTS)}, got {name!r}')
+  return AGENTS[name]
+
+
+def single_thread() -> None:
+  """Pins torch and (if not started yet) JAX to one CPU thread."""
+  os.environ.setdefault('XLA_FLAGS', _XLA_ONE_THREAD)
+  os.environ.setdefault('JAX_PLATFORMS', 'cpu')  # No probing for a TPU.
+  import torch  # noqa: PLC0415 (heavy; only when learning)
+
+  torch.set_num_threads(1)
+
+
+def _library_class(name: str):
+  single_thread()
+  if name in ('sac', 'sac_demos'):
+    import sbx  # noqa: PLC0415
+
+    return sbx.SAC
+  if name == 'trpo':
+    import sb3_contrib  # noqa: PLC0415
+
+    return sb3_contrib.TRPO
+  import stable_baselines3  # noqa: PLC0415
+
+  return {'sac_sb3': stable_baselines3.SAC, 'ppo': stable_baselines3.PPO}[name]
+
+
+def build(
+  agent: Agent, env, seed: int, hidden: tuple[int, ...], buffer_size: int
+):
+  """A new model of `agent` learning on the vectorized `env`."""
+  cls = _library_class(agent.name)
+  kwargs = dict(agent.hyperparameters)
+  if agent.replay:
+    kwargs['buffer_size'] = max(buffer_size, 1)
+  return cls(
+    'MlpPolicy',
+    env,
+    seed=seed,
+    policy_kwargs={'net_arch': list(hidden)},
+    verbose=0,
+    **kwargs,
+  )
+
+
+def load(agent: Agent, path, env):
+  """A model saved by `model.save(path)`."""
+  return _library_class(agent.name).load(str(path), env=env, device='cpu')
+
+
+def numpy_policy(model, metadata: dict[str, Any]) -> policies.NumpyPolicy:
+  """The deterministic actor of a trained model, for numpy."""
+  policy = model.policy
+  if hasattr(policy, 'actor_state'):  # sbx SAC: tanh of the mean.
+    params = policy.actor_state.params['params']
+    dense = sorted(
+      (name for name in params if name.startswith('Dense_')),
+      key=lambda name: int(name.split('_')[1]),
+    )
+    # The hidden layers, then the mean; the last Dense is the log-std.
+    layers = [params[name] for name in dense[:-1]]
+    return policies.NumpyPolicy(
+      [_array(layer['kernel']).T for layer in layers],
+      [_array(layer['bias']) for layer in layers],
+      'relu',
+      'tanh',
+      metadata,
+    )
+  from torch import nn  # noqa: PLC0415
+
+  if hasattr(policy, 'actor'):  # SB3 SAC: tanh of the mean.
+    layers = [*policy.actor.latent_pi, policy.actor.mu]
+    output = 'tanh'
+  else:  # PPO and TRPO: the mean, clipped to the action bounds.
+    layers = [*policy.mlp_extractor.policy_net, policy.action_net]
+    output = 'clip'
+  linear = [layer for layer in layers if isinstance(layer, nn.Linear)]
+  activations = {
+    type(layer).__name__.lower()
+    for layer in layers
+    if not isinstance(layer, nn.Linear)
+  }
+  if len(activations) > 1 or not activations <= {'relu', 'tanh'}:
+    raise ValueError(f'unsupported activations {activations}')
+  return policies.NumpyPolicy(
+    [layer.weight.detach().cpu().numpy() for layer in linear],
+    [layer.bias.detach().cpu().numpy() for layer in linear],
+    activations.pop() if activations else 'relu',
+    output,
+    metadata,
+  )
+
+
+def _array(value):
+  import numpy as np  # noqa: PLC0415
+
+  return np.asarray(value)

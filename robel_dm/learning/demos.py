@@ -1,0 +1,125 @@
+"""Demonstrations: recorded episodes as (observation, action, ...) arrays.
+
+A demonstration set is a recording (`evaluate --record=DIR`, with the
+reference controller or a solved policy) of the task being learned. Only
+complete episodes count; a recording of another task is refused.
+"""
+
+import dataclasses
+import pathlib
+
+import numpy as np
+
+from robel_dm import recording
+
+
+@dataclasses.dataclass(frozen=True)
+class Transitions:
+  """Aligned arrays, one row per transition.
+
+  Attributes:
+    observations: (n, obs) the agent vector an action was taken from.
+    actions: (n, act) the normalized action.
+    rewards: (n,) ROBEL's reward that followed.
+    next_observations: (n, obs) the agent vector after the action.
+    terminals: (n,) True where the task ended the episode (a fall), not
+      the time limit.
+    episodes: how many episodes they came from.
+  """
+
+  observations: np.ndarray
+  actions: np.ndarray
+  rewards: np.ndarray
+  next_observations: np.ndarray
+  terminals: np.ndarray
+  episodes: int
+
+  def __len__(self) -> int:
+    return len(self.actions)
+
+
+class DemoError(ValueError):
+  """A demonstration set that cannot be used."""
+
+
+def load(
+  directories: str | pathlib.Path | list,
+  domain: str,
+  task: str,
+  observation_keys: tuple[str, ...],
+  task_kwargs: dict | None = None,
+  episodes: int | None = None,
+) -> Transitions:
+  """The complete episodes of one or more recordings of `domain/task`.
+
+  Args:
+    directories: recording directories.
+    domain: the task's domain.
+    task: the task.
+    observation_keys: the agent vector's keys, in order.
+    task_kwargs: the task's arguments (the valve must match).
+    episodes: use the first this many complete episodes (all if None).
+
+  Raises:
+    DemoError: a directory is not a recording of this task, holds too few
+      complete episodes, or lacks an observation key.
+  """
+  if isinstance(directories, (str, pathlib.Path)):
+    directories = [directories]
+  chosen = []
+  for directory in directories:
+    try:
+      recorded = recording.read(directory)
+    except recording.RecordingError as error:
+      raise DemoError(f'demonstrations: {error}') from error
+    for episode in recorded:
+      meta = episode.metadata
+      if (meta.get('domain'), meta.get('task')) != (domain, task):
+        raise DemoError(
+          f'demonstrations in {directory} are of {meta.get("domain")}/'
+          f'{meta.get("task")}, not {domain}/{task}'
+        )
+      valve = (meta.get('task_kwargs') or {}).get('valve')
+      if valve != (task_kwargs or {}).get('valve'):
+        raise DemoError(
+          f'demonstrations in {directory} use valve {valve or "valve3"}'
+        )
+      if meta.get('complete') and len(episode) > 1:
+        chosen.append(episode)
+  if episodes is not None:
+    if len(chosen) < episodes:
+      raise DemoError(
+        f'{len(chosen)} complete demonstration episodes, {episodes} asked'
+      )
+    chosen = chosen[:episodes]
+  if not chosen:
+    raise DemoError('no complete demonstration episode')
+  parts = [_transitions(episode, observation_keys) for episode in chosen]
+  return Transitions(
+    *(np.concatenate(arrays) for arrays in zip(*parts, strict=True)),
+    episodes=len(chosen),
+  )
+
+
+def _transitions(episode, keys):
+  steps = episode.steps
+  missing = [k for k in keys if f'observation.{k}' not in steps]
+  if missing:
+    raise DemoError(f'demonstrations lack observations {missing}')
+  flat = np.concatenate(
+    [
+      np.asarray(steps[f'observation.{key}'], np.float32).reshape(
+        len(episode), -1
+      )
+      for key in keys
+    ],
+    axis=1,
+  )
+  # Row t holds the action that led to it and the reward that followed;
+  # the first row is the reset's.
+  actions = np.asarray(steps['action'], np.float32)[1:]
+  rewards = np.asarray(steps['next.reward'], np.float32)[1:]
+  discounts = np.asarray(steps['discount'], np.float32)[1:]
+  terminals = np.zeros(len(actions), bool)
+  terminals[-1] = discounts[-1] == 0
+  return flat[:-1], actions, rewards, flat[1:], terminals

@@ -1,0 +1,522 @@
+r"""Trains an agent on a robel_dm task.
+
+    python -m robel_dm.train --domain=dclaw --task=pose_fixed --steps=30000 \
+        --seed=0 --output_dir=runs/pose
+
+Writes into --output_dir:
+  * `config.json`: the run's settings (`RunConfig`); --resume refuses to
+    continue with different ones;
+  * `checkpoint.zip`, `replay_buffer.pkl` (off-policy agents) and
+    `env_state.pkl` (the training episodes' random streams): what --resume
+    continues from;
+  * `policy.npz`: the last deterministic actor, and `policy_best.npz`, the
+    best evaluated one (success rate, then mean score), both for
+    `robel_dm.policies.load` and `evaluate --policy=...` (numpy only);
+  * `eval.jsonl`: one line per evaluation, the first before any learning
+    (env steps, wall and CPU seconds, success rate, mean score, mean
+    return, safety violations per episode), with ROBEL's reward whatever
+    --safety_penalty is; evaluation episodes use seeds no training episode
+    uses;
+  * `learning_curve.png`.
+
+Needs the `learn` extra.
+"""
+
+from collections.abc import Callable, Sequence
+import dataclasses
+import json
+import pathlib
+import pickle
+import time
+from typing import Any
+
+import gymnasium
+import numpy as np
+
+from robel_dm import evaluate, policies, suite
+from robel_dm.learning import agents, curves, demos
+
+CHECKPOINT = 'checkpoint.zip'
+REPLAY_BUFFER = 'replay_buffer.pkl'
+ENV_STATE = 'env_state.pkl'
+POLICY = 'policy.npz'
+BEST_POLICY = 'policy_best.npz'
+EVAL_LOG = 'eval.jsonl'
+CURVE = 'learning_curve.png'
+CONFIG = 'config.json'
+METADATA = 'metadata.json'
+# Evaluation episodes are seeded from here on, training ones below it.
+EVAL_SEED_OFFSET = 1_000_000
+# What --resume may change: the budget and how often it is evaluated.
+RESUMABLE_CHANGES = ('steps', 'eval_every', 'eval_episodes')
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+  """What a training run is.
+
+  Attributes:
+    domain: 'dclaw' or 'dkitty'.
+    task: the task, e.g. 'turn_fixed'.
+    task_kwargs: the task's arguments (e.g. {'valve': 'valve4'}).
+    algo: an agent of `agents.AGENTS`.
+    seed: seeds the agent and the training episodes.
+    steps: env steps to train for (epochs for `bc`).
+    num_envs: environments stepped together.
+    eval_every: env steps (epochs for `bc`) between evaluations.
+    eval_episodes: episodes per evaluation.
+    safety_penalty: the training reward minus this per safety violation.
+    hidden: hidden layer sizes; the agent's own if empty.
+    demos: recording directories of demonstrations (bc, sac_demos).
+    demo_episodes: how many demonstration episodes to use.
+  """
+
+  domain: str
+  task: str
+  task_kwargs: dict[str, Any] = dataclasses.field(default_factory=dict)
+  algo: str = agents.DEFAULT
+  seed: int = 0
+  steps: int = 30_000
+  num_envs: int = 1
+  eval_every: int = 5_000
+  eval_episodes: int = 10
+  safety_penalty: float = 0.0
+  hidden: tuple[int, ...] = ()
+  demos: tuple[str, ...] = ()
+  demo_episodes: int = 20
+
+  @property
+  def agent(self) -> agents.Agent:
+    return agents.get(self.algo)
+
+  @property
+  def layers(self) -> tuple[int, ...]:
+    return tuple(self.hidden) or self.agent.hidden
+
+  def check(self) -> None:
+    """Raises ValueError naming the first bad setting."""
+    agent = self.agent
+    for name in ('steps', 'num_envs', 'eval_every', 'eval_episodes'):
+      if getattr(self, name) < 1:
+        raise ValueError(f'{name} must be >= 1, got {getattr(self, name)}')
+    if self.safety_penalty < 0 or not np.isfinite(self.safety_penalty):
+      raise ValueError(
+        f'safety_penalty must be >= 0, got {self.safety_penalty}'
+      )
+    if any(size < 1 for size in self.layers):
+      raise ValueError(f'hidden sizes must be >= 1, got {self.hidden}')
+    if agent.needs_demos and not self.demos:
+      raise ValueError(f'--algo={self.algo} learns from --demos=DIR')
+    if self.demos and not agent.needs_demos:
+      raise ValueError(f'--algo={self.algo} does not use --demos')
+    if self.demo_episodes < 1:
+      raise ValueError('demo_episodes must be >= 1')
+
+  def to_json(self) -> dict[str, Any]:
+    data = dataclasses.asdict(self)
+    data['hidden'] = list(self.layers)
+    data['demos'] = list(self.demos)
+    return data
+
+  @classmethod
+  def from_json(cls, data: dict[str, Any]) -> 'RunConfig':
+    fields = {f.name for f in dataclasses.fields(cls)}
+    data = {k: v for k, v in data.items() if k in fields}
+    data['hidden'] = tuple(data.get('hidden', ()))
+    data['demos'] = tuple(data.get('demos', ()))
+    return cls(**data)
+
+
+class TrainingEnv(gymnasium.Wrapper):
+  """A training environment: its episodes' random stream is its own, and
+  the reward may pay a safety penalty.
+
+  The stream is seeded once, when the environment is made; the seeds
+  Stable-Baselines3 passes to `reset` are ignored, so a resumed run goes on
+  with the stream it saved instead of starting it over.
+  """
+
+  def __init__(self, env, penalty: float):
+    super().__init__(env)
+    self._penalty = penalty
+
+  def reset(self, *, seed=None, options=None):
+    del seed
+    return self.env.reset(options=options)
+
+  def step(self, action):
+    observation, reward, terminated, truncated, info = self.env.step(action)
+    if self._penalty:
+      reward -= self._penalty * sum(info['safety'].values())
+    return observation, reward, terminated, truncated, info
+
+
+def make_env(config: RunConfig, index: int) -> TrainingEnv:
+  """Training environment `index` of a run."""
+  from robel_dm import gym as robel_gym  # noqa: PLC0415
+
+  env = robel_gym.RobelEnv(
+    config.domain,
+    config.task,
+    task_kwargs=config.task_kwargs,
+    seed=config.seed * 1000 + index,
+  )
+  return TrainingEnv(env, config.safety_penalty)
+
+
+def metadata_of(config: RunConfig) -> dict[str, Any]:
+  """What a saved policy records about its training."""
+  env = suite.load(config.domain, config.task, task_kwargs=config.task_kwargs)
+  keys = list(env.task.agent_observation_keys)
+  env.close()
+  return {
+    'domain': config.domain,
+    'task': config.task,
+    'task_kwargs': dict(config.task_kwargs),
+    'observation_keys': keys,
+    'algo': config.algo,
+    'seed': config.seed,
+    'safety_penalty': config.safety_penalty,
+  }
+
+
+def evaluate_policy(
+  policy: policies.NumpyPolicy, config: RunConfig, episodes: int
+) -> dict[str, Any]:
+  """ROBEL's metrics of a policy (ROBEL's reward, no penalty), on
+  episodes seeded apart from every training episode."""
+  results = evaluate.evaluate(
+    config.domain,
+    config.task,
+    episodes,
+    policy=policy,
+    seed=EVAL_SEED_OFFSET + config.seed * 1000,
+    task_kwargs=config.task_kwargs,
+  )
+  return {
+    'success_rate': results['success_rate'],
+    'mean_score': results['mean_score'],
+    'mean_return': results['mean_return'],
+    'safety': results['safety'],
+    'episodes': episodes,
+  }
+
+
+def _better(row: dict, best: dict | None) -> bool:
+  if best is None:
+    return True
+  return (row['success_rate'], row['mean_score']) > (
+    best['success_rate'],
+    best['mean_score'],
+  )
+
+
+class _Run:
+  """The bookkeeping of one run directory: log, clocks, best policy."""
+
+  def __init__(self, output: pathlib.Path, config: RunConfig, log):
+    self.output, self.config, self.log = output, config, log
+    self.log_path = output / EVAL_LOG
+    self.history: list[dict] = []
+    self.best: dict | None = None
+    self._wall = self._cpu = 0.0
+
+  def load_history(self) -> None:
+    if self.log_path.is_file():
+      self.history = [
+        json.loads(line) for line in self.log_path.read_text().splitlines()
+      ]
+    for row in self.history:
+      if _better(row, self.best):
+        self.best = row
+    if self.history:
+      self._wall = self.history[-1]['wall_time']
+      self._cpu = self.history[-1].get('cpu_time', 0.0)
+
+  def start_clocks(self) -> None:
+    self._wall -= time.perf_counter()
+    self._cpu -= time.process_time()
+
+  def record(self, policy: policies.NumpyPolicy, steps: int, **extra) -> dict:
+    """Evaluates `policy`, saves it (and as the best if it is), logs."""
+    wall = self._wall + time.perf_counter()
+    cpu = self._cpu + time.process_time()
+    policy.save(self.output / POLICY)
+    row = {
+      'env_steps': int(steps),
+      'wall_time': wall,
+      'cpu_time': cpu,
+      **extra,
+      **evaluate_policy(policy, self.config, self.config.eval_episodes),
+    }
+    if _better(row, self.best):
+      self.best = row
+      policy.save(self.output / BEST_POLICY)
+    self.history.append(row)
+    with open(self.log_path, 'a') as file:
+      file.write(json.dumps(row) + '\n')
+    config = self.config
+    self.log(
+      f'{config.domain}/{config.task} {config.algo} seed {config.seed}: '
+      f'{row["env_steps"]:>8d} steps {row["wall_time"]:7.0f} s: success '
+      f'{row["success_rate"]:.2f} score {row["mean_score"]:.3f} return '
+      f'{row["mean_return"]:9.1f} violations/episode '
+      + ' '.join(f'{k} {v:.1f}' for k, v in row['safety'].items())
+    )
+    return row
+
+
+def _check_resume(output: pathlib.Path, config: RunConfig) -> None:
+  path = output / CONFIG
+  if not (output / CHECKPOINT).is_file() and not (output / POLICY).is_file():
+    raise ValueError(f'--resume: no checkpoint in {output}')
+  if not path.is_file():
+    raise ValueError(f'--resume: {path} is missing')
+  trained = RunConfig.from_json(json.loads(path.read_text()))
+  differences = [
+    f'{name}: {getattr(trained, name)!r} (now {getattr(config, name)!r})'
+    for name in (f.name for f in dataclasses.fields(RunConfig))
+    if name not in RESUMABLE_CHANGES
+    and _normalized(trained, name) != _normalized(config, name)
+  ]
+  if differences:
+    raise ValueError(
+      f'--resume: {output} was trained with other settings; pass the same '
+      'ones (only --steps, --eval_every and --eval_episodes may change): '
+      + '; '.join(differences)
+    )
+
+
+def _normalized(config: RunConfig, name: str):
+  value = getattr(config, name)
+  if name == 'hidden':
+    return config.layers
+  if isinstance(value, dict):
+    return json.dumps(value, sort_keys=True)
+  return value
+
+
+def _grow_replay_buffer(model, size: int) -> None:
+  """Gives a loaded replay buffer room for `size` transitions in all,
+  keeping every transition it holds (in order)."""
+  buffer = model.replay_buffer
+  if buffer.buffer_size >= size:
+    return
+  held = buffer.buffer_size if buffer.full else buffer.pos
+  start = buffer.pos if buffer.full else 0
+  order = (np.arange(held) + start) % buffer.buffer_size
+  grown = type(buffer)(
+    size,
+    buffer.observation_space,
+    buffer.action_space,
+    device='cpu',
+    n_envs=buffer.n_envs,
+  )
+  for name in (
+    'observations',
+    'next_observations',
+    'actions',
+    'rewards',
+    'dones',
+    'timeouts',
+  ):
+    getattr(grown, name)[:held] = getattr(buffer, name)[order]
+  grown.pos, grown.full = held, False
+  model.replay_buffer = grown
+
+
+def _env_states(vec_env) -> list:
+  return [
+    env.unwrapped.robel_env.random_state.get_state() for env in vec_env.envs
+  ]
+
+
+def _set_env_states(vec_env, states) -> None:
+  for env, state in zip(vec_env.envs, states, strict=True):
+    env.unwrapped.robel_env.random_state.set_state(state)
+
+
+def _rollout(agent: agents.Agent, model, config: RunConfig) -> int:
+  """Env steps the agent collects between updates (all environments)."""
+  if agent.kind == agents.ON_POLICY:
+    return int(model.n_steps) * config.num_envs
+  return int(model.train_freq.frequency) * config.num_envs
+
+
+def _round_up(value: int, unit: int) -> int:
+  return -(-value // unit) * unit if unit else value
+
+
+def train(
+  config: RunConfig,
+  output_dir: str | pathlib.Path,
+  *,
+  resume: bool = False,
+  log: Callable[[str], None] = print,
+) -> list[dict[str, Any]]:
+  """Trains, evaluating every `config.eval_every` env steps.
+
+  Returns:
+    The evaluation log (one dict per evaluation).
+
+  Raises:
+    ValueError: for bad settings, a --resume without a checkpoint or with
+      other settings, or unusable demonstrations; all before anything is
+      written.
+  """
+  config.check()
+  metadata = metadata_of(config)  # Also checks the task's name.
+  output = pathlib.Path(output_dir)
+  if resume:
+    _check_resume(output, config)
+  data = None
+  if config.demos:
+    data = demos.load(
+      list(config.demos),
+      config.domain,
+      config.task,
+      tuple(metadata['observation_keys']),
+      config.task_kwargs,
+      config.demo_episodes,
+    )
+  output.mkdir(parents=True, exist_ok=True)
+  run = _Run(output, config, log)
+  if resume:
+    run.load_history()
+  else:
+    run.log_path.write_text('')
+  (output / CONFIG).write_text(json.dumps(config.to_json(), indent=1))
+  (output / METADATA).write_text(json.dumps(metadata, indent=1))
+  if config.agent.kind == agents.IMITATION:
+    _clone(config, run, data, metadata)
+  else:
+    _reinforce(config, run, data, metadata, resume)
+  curves.plot_run(
+    run.log_path,
+    output / CURVE,
+    f'{config.domain}/{config.task} ({config.algo}, seed {config.seed})',
+  )
+  return run.history
+
+
+def _clone(config: RunConfig, run: _Run, data, metadata) -> None:
+  from robel_dm.learning import imitation  # noqa: PLC0415
+
+  done = run.history[-1]['epoch'] if run.history else 0
+  if done >= config.steps:
+    return
+  hyper = config.agent.hyperparameters
+  run.start_clocks()
+  if not run.history:
+    untrained = imitation.fit(
+      data, config.layers, config.seed, 0, 1, 1e-3, metadata
+    )
+    run.record(untrained, 0, epoch=0, demo_transitions=len(data))
+  # Behaviour cloning is cheap: a resumed run starts over from the data.
+  imitation.fit(
+    data,
+    config.layers,
+    config.seed,
+    config.steps,
+    hyper['batch_size'],
+    hyper['learning_rate'],
+    metadata,
+    on_epoch=lambda epoch, policy, loss: run.record(
+      policy, 0, epoch=epoch, loss=loss, demo_transitions=len(data)
+    ),
+    every=config.eval_every,
+  )
+
+
+def _reinforce(config: RunConfig, run: _Run, data, metadata, resume) -> None:
+  agent = config.agent
+  output = run.output
+  from stable_baselines3.common.logger import Logger  # noqa: PLC0415
+  from stable_baselines3.common.vec_env import DummyVecEnv  # noqa: PLC0415
+
+  vec_env = DummyVecEnv(
+    [lambda i=i: make_env(config, i) for i in range(config.num_envs)]
+  )
+  checkpoint = output / CHECKPOINT
+  if resume and checkpoint.is_file():
+    model = agents.load(agent, checkpoint, vec_env)
+    if agent.replay and (output / REPLAY_BUFFER).is_file():
+      model.load_replay_buffer(str(output / REPLAY_BUFFER))
+      _grow_replay_buffer(model, config.steps + _demo_count(data))
+    if (output / ENV_STATE).is_file():
+      with open(output / ENV_STATE, 'rb') as file:
+        _set_env_states(vec_env, pickle.load(file))
+  else:
+    model = agents.build(
+      agent,
+      vec_env,
+      config.seed,
+      config.layers,
+      config.steps + _demo_count(data),
+    )
+    if data is not None:
+      _add_demonstrations(model, data)
+  # SB3's own logger would make a folder in /tmp per learn() call; the
+  # evaluation log is the record of the run.
+  model.set_logger(Logger(folder=None, output_formats=[]))
+  rollout = _rollout(agent, model, config)
+  eval_every = _round_up(config.eval_every, rollout)
+  steps = _round_up(config.steps, rollout)
+  if steps != config.steps:
+    run.log(
+      f'{config.algo} collects whole rollouts of {rollout} env steps: '
+      f'training for {steps} steps, evaluating every {eval_every}'
+    )
+  run.start_clocks()
+  if not run.history:
+    run.record(agents.numpy_policy(model, metadata), 0)
+  while model.num_timesteps < steps:
+    chunk = min(eval_every, steps - model.num_timesteps)
+    model.learn(chunk, reset_num_timesteps=False)
+    model.save(str(checkpoint))
+    if agent.replay:
+      model.save_replay_buffer(str(output / REPLAY_BUFFER))
+    with open(output / ENV_STATE, 'wb') as file:
+      pickle.dump(_env_states(vec_env), file)
+    run.record(agents.numpy_policy(model, metadata), model.num_timesteps)
+  vec_env.close()
+
+
+def _demo_count(data) -> int:
+  return 0 if data is None else len(data)
+
+
+def _add_demonstrations(model, data: demos.Transitions) -> None:
+  """Puts every demonstrated transition into the replay buffer, where the
+  buffer's size (run steps + demonstrations) keeps them for the run."""
+  buffer = model.replay_buffer
+  n = len(data)
+  if buffer.n_envs != 1:
+    raise ValueError('demonstrations need --num_envs=1')
+  buffer.observations[:n, 0] = data.observations
+  buffer.next_observations[:n, 0] = data.next_observations
+  buffer.actions[:n, 0] = data.actions
+  buffer.rewards[:n, 0] = data.rewards
+  buffer.dones[:n, 0] = data.terminals
+  buffer.pos = n
+
+
+def read_metadata(path: pathlib.Path) -> dict[str, Any]:
+  """The metadata saved beside a checkpoint (task, keys, algorithm)."""
+  file = pathlib.Path(path).with_name(METADATA)
+  if not file.is_file():
+    raise policies.PolicyError(
+      f'{file} is missing: the checkpoint does not say what it was trained on'
+    )
+  return json.loads(file.read_text())
+
+
+def load_checkpoint_policy(path: pathlib.Path) -> policies.NumpyPolicy:
+  """The deterministic actor of a `checkpoint.zip` as a NumpyPolicy."""
+  metadata = read_metadata(path)
+  agent = agents.get(metadata.get('algo', 'sac_sb3'))
+  return agents.numpy_policy(agents.load(agent, path, None), metadata)
+
+
+def parse_hidden(values: Sequence[str]) -> tuple[int, ...]:
+  return tuple(int(value) for value in values if value)

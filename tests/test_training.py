@@ -1,0 +1,275 @@
+"""Training runs: agents, artefacts, evaluations, best policies, resume."""
+
+import dataclasses
+import json
+import pickle
+
+import numpy as np
+import pytest
+
+pytest.importorskip('stable_baselines3')
+pytest.importorskip('sbx')
+
+from robel_dm import evaluate, policies  # noqa: E402
+from robel_dm.learning import agents, demos  # noqa: E402
+from robel_dm.learning import train as learning  # noqa: E402
+
+QUIET = {'log': lambda line: None}
+
+
+def _config(**changes) -> learning.RunConfig:
+  base = learning.RunConfig(
+    domain='dclaw',
+    task='pose_random',
+    steps=304,
+    eval_every=152,
+    eval_episodes=1,
+    hidden=(16, 16),
+    safety_penalty=0.5,
+  )
+  return dataclasses.replace(base, **changes)
+
+
+@pytest.fixture(scope='module')
+def trained_run(tmp_path_factory):
+  output = tmp_path_factory.mktemp('run')
+  history = learning.train(_config(), output, **QUIET)
+  return output, history
+
+
+def test_training_writes_every_artefact(trained_run):
+  output, history = trained_run
+  for name in ('checkpoint.zip', 'replay_buffer.pkl', 'env_state.pkl',
+               'policy.npz', 'policy_best.npz', 'eval.jsonl',
+               'learning_curve.png', 'config.json',
+               'metadata.json'):  # fmt: skip
+    assert (output / name).is_file(), name
+  rows = [json.loads(line) for line in (output / 'eval.jsonl').open()]
+  # An evaluation of the untrained actor first, then one per chunk; the
+  # default agent collects 8 steps between updates.
+  assert [row['env_steps'] for row in rows][0] == 0
+  assert [row['env_steps'] for row in rows][-1] == 304
+  assert rows == json.loads(json.dumps(history))
+  assert set(rows[0]) >= {'env_steps', 'wall_time', 'cpu_time',
+                          'success_rate', 'mean_score', 'mean_return',
+                          'safety', 'episodes'}  # fmt: skip
+  assert set(rows[0]['safety']) == {'position', 'velocity', 'current'}
+  config = json.loads((output / 'config.json').read_text())
+  assert config['safety_penalty'] == 0.5 and config['steps'] == 304
+  assert config['algo'] == agents.DEFAULT == 'sac'
+
+
+def test_the_best_evaluated_policy_is_kept(tmp_path, monkeypatch):
+  # Evaluations that rise then fall: the best file holds the second actor.
+  scores = iter([0.1, 0.9, 0.2])
+
+  def fake_evaluate(policy, config, episodes):
+    score = next(scores)
+    fake_evaluate.seen.append((score, policy.act(np.zeros(27))))
+    return {'success_rate': 0.0, 'mean_score': score, 'mean_return': 0.0,
+            'safety': {'position': 0.0}, 'episodes': episodes}  # fmt: skip
+
+  fake_evaluate.seen = []
+  monkeypatch.setattr(learning, 'evaluate_policy', fake_evaluate)
+  learning.train(
+    _config(steps=1024, eval_every=512, safety_penalty=0.0), tmp_path, **QUIET
+  )
+  best = policies.load(tmp_path / 'policy_best.npz').act(np.zeros(27))
+  last = policies.load(tmp_path / 'policy.npz').act(np.zeros(27))
+  np.testing.assert_allclose(best, fake_evaluate.seen[1][1], rtol=1e-6)
+  np.testing.assert_allclose(last, fake_evaluate.seen[2][1], rtol=1e-6)
+  assert not np.allclose(best, last)
+
+
+def test_evaluations_use_seeds_no_training_episode_uses(monkeypatch):
+  seen = {}
+
+  def fake(domain, task, episodes, policy, seed, task_kwargs):
+    seen['seed'] = seed
+    return {'success_rate': 0, 'mean_score': 0, 'mean_return': 0,
+            'safety': {}}  # fmt: skip
+
+  monkeypatch.setattr(evaluate, 'evaluate', fake)
+  config = _config(seed=3, num_envs=4)
+  learning.evaluate_policy(None, config, 50)
+  training_seeds = {config.seed * 1000 + i for i in range(config.num_envs)}
+  evaluation_seeds = set(range(seen['seed'], seen['seed'] + 50))
+  assert not training_seeds & evaluation_seeds
+
+
+def test_resume_continues_with_every_transition(trained_run):
+  output, _ = trained_run
+  before = pickle.loads((output / 'replay_buffer.pkl').read_bytes())
+  state = pickle.loads((output / 'env_state.pkl').read_bytes())
+  history = learning.train(_config(steps=608), output, resume=True, **QUIET)
+  steps = [row['env_steps'] for row in history]
+  assert steps[0] == 0 and steps[-1] == 608 and steps == sorted(steps)
+  after = pickle.loads((output / 'replay_buffer.pkl').read_bytes())
+  # The buffer grew to the new budget and kept the first run's transitions.
+  assert after.buffer_size >= 608 > before.buffer_size
+  held = before.buffer_size if before.full else before.pos
+  assert held == 304
+  np.testing.assert_array_equal(
+    after.observations[:held], before.observations[:held]
+  )
+  assert (after.pos, after.full) in ((608, False), (0, True))
+  # The training episodes went on from the saved random stream: the first
+  # episode after resuming is not the run's first episode again.
+  assert not np.array_equal(
+    after.observations[held, 0], after.observations[0, 0]
+  )
+  resumed = pickle.loads((output / 'env_state.pkl').read_bytes())
+  same_key = np.array_equal(resumed[0][1], state[0][1])
+  assert not (same_key and resumed[0][2] == state[0][2])
+
+
+@pytest.mark.parametrize(
+  'change',
+  [
+    {'algo': 'ppo'},
+    {'safety_penalty': 0.0},
+    {'hidden': (32, 32)},
+    {'seed': 1},
+    {'task': 'turn_fixed'},
+  ],
+)
+def test_resume_refuses_other_settings_and_leaves_the_run(trained_run, change):
+  output, _ = trained_run
+  files = {
+    path.name: path.read_bytes()
+    for path in output.iterdir()
+    if path.suffix in ('.json', '.jsonl', '.zip', '.npz')
+  }
+  with pytest.raises(ValueError, match='--resume: .*other settings'):
+    learning.train(_config(**change), output, resume=True, **QUIET)
+  for name, data in files.items():
+    assert (output / name).read_bytes() == data, name
+
+
+def test_resume_refuses_another_valve(tmp_path):
+  config = _config(task='turn_fixed', steps=16, eval_every=16)
+  learning.train(config, tmp_path, **QUIET)
+  other = dataclasses.replace(config, task_kwargs={'valve': 'valve4'})
+  with pytest.raises(ValueError, match='task_kwargs'):
+    learning.train(other, tmp_path, resume=True, **QUIET)
+
+
+def test_resume_without_a_run_is_refused(tmp_path):
+  with pytest.raises(ValueError, match='no checkpoint'):
+    learning.train(_config(), tmp_path, resume=True, **QUIET)
+
+
+@pytest.mark.parametrize('algo', ['sac', 'sac_sb3', 'ppo', 'trpo'])
+def test_numpy_policy_equals_the_library_prediction(tmp_path, algo):
+  config = _config(
+    algo=algo, task='turn_fixed', steps=64, eval_every=64, safety_penalty=0
+  )
+  learning.train(config, tmp_path, **QUIET)
+  model = agents.load(agents.get(algo), tmp_path / 'checkpoint.zip', None)
+  numpy_policy = policies.load(tmp_path / 'policy.npz')
+  observations = np.random.default_rng(1).normal(size=(32, 21))
+  expected, _ = model.predict(
+    observations.astype(np.float32), deterministic=True
+  )
+  np.testing.assert_allclose(
+    numpy_policy.act(observations), expected, atol=1e-5
+  )
+  assert numpy_policy.metadata['algo'] == algo
+
+
+def test_on_policy_runs_say_they_round_up_to_whole_rollouts(tmp_path):
+  lines = []
+  history = learning.train(
+    _config(algo='ppo', steps=3000, eval_every=3000, safety_penalty=0),
+    tmp_path,
+    log=lines.append,
+  )
+  assert history[-1]['env_steps'] == 4096
+  assert 'whole rollouts of 2048' in lines[0] and '4096' in lines[0]
+
+
+@pytest.fixture(scope='module')
+def pose_demos(tmp_path_factory):
+  pytest.importorskip('pyarrow')
+  directory = tmp_path_factory.mktemp('demos')
+  evaluate.evaluate(
+    'dclaw',
+    'pose_fixed',
+    20,
+    policy='reference',
+    seed=0,
+    record=str(directory),
+  )
+  return directory
+
+
+def test_demonstrations_load_as_aligned_transitions(pose_demos):
+  keys = learning.metadata_of(_config(task='pose_fixed'))['observation_keys']
+  data = demos.load(pose_demos, 'dclaw', 'pose_fixed', tuple(keys))
+  assert data.episodes == 20
+  assert data.observations.shape == data.next_observations.shape
+  assert data.observations.shape[1] == 27
+  assert len(data.actions) == len(data.rewards) == len(data.observations)
+  # Consecutive transitions chain: one's next observation is the next's.
+  np.testing.assert_array_equal(
+    data.next_observations[:-1][~data.terminals[:-1]][:5],
+    data.observations[1:][~data.terminals[:-1]][:5],
+  )
+  with pytest.raises(demos.DemoError, match='not dclaw/turn_random'):
+    demos.load(pose_demos, 'dclaw', 'turn_random', tuple(keys))
+  with pytest.raises(demos.DemoError, match='21 asked'):
+    demos.load(pose_demos, 'dclaw', 'pose_fixed', tuple(keys), episodes=21)
+
+
+def test_behaviour_cloning_learns_the_reference_controller(
+  pose_demos, tmp_path
+):
+  config = _config(
+    task='pose_fixed',
+    algo='bc',
+    steps=200,
+    eval_every=100,
+    eval_episodes=10,
+    hidden=(64, 64),
+    safety_penalty=0,
+    demos=(str(pose_demos),),
+  )
+  history = learning.train(config, tmp_path, **QUIET)
+  assert [row['epoch'] for row in history] == [0, 100, 200]
+  assert history[0]['success_rate'] < 0.5
+  assert history[-1]['success_rate'] >= 0.8
+
+
+def test_demo_augmented_sac_keeps_the_demonstrations(pose_demos, tmp_path):
+  config = _config(
+    task='pose_fixed',
+    algo='sac_demos',
+    steps=64,
+    eval_every=64,
+    safety_penalty=0,
+    demos=(str(pose_demos),),
+  )
+  learning.train(config, tmp_path, **QUIET)
+  buffer = pickle.loads((tmp_path / 'replay_buffer.pkl').read_bytes())
+  keys = learning.metadata_of(config)['observation_keys']
+  data = demos.load(pose_demos, 'dclaw', 'pose_fixed', tuple(keys))
+  np.testing.assert_array_equal(buffer.actions[: len(data), 0], data.actions)
+  # Room for the demonstrations and every step of the run, so none of them
+  # is ever overwritten.
+  assert buffer.buffer_size == len(data) + 64
+  assert (buffer.pos, buffer.full) == (0, True)
+
+
+def test_agents_that_learn_from_demonstrations_need_them(tmp_path):
+  with pytest.raises(ValueError, match='--demos'):
+    learning.train(_config(algo='bc'), tmp_path, **QUIET)
+  with pytest.raises(ValueError, match='does not use --demos'):
+    learning.train(_config(demos=('x',)), tmp_path, **QUIET)
+  assert not any(tmp_path.iterdir())
+
+
+def test_every_agent_names_its_source_and_paper_kind():
+  kinds = {agent.paper for agent in agents.AGENTS.values()}
+  assert kinds == {'SAC', 'NPG', 'BC', 'DAPG'}
+  for agent in agents.AGENTS.values():
+    assert agent.source and agent.hidden
