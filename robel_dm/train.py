@@ -44,6 +44,11 @@ def _define_flags() -> None:
     'demos', [], 'Recordings of demonstrations (bc and sac_demos).'
   )
   flags.DEFINE_integer('demo_episodes', 20, 'Demonstration episodes to use.')
+  flags.DEFINE_float(
+    'stop_at_success',
+    None,
+    'End early once an evaluation reaches this success rate.',
+  )
 
 
 FLAGS = flags.FLAGS
@@ -74,6 +79,7 @@ def main(argv):
       hidden=learning.parse_hidden(FLAGS.hidden),
       demos=tuple(FLAGS.demos),
       demo_episodes=FLAGS.demo_episodes,
+      stop_at_success=FLAGS.stop_at_success,
     )
     learning.train(
       config,

@@ -48,7 +48,7 @@ METADATA = 'metadata.json'
 # Evaluation episodes are seeded from here on, training ones below it.
 EVAL_SEED_OFFSET = 1_000_000
 # What --resume may change: the budget and how often it is evaluated.
-RESUMABLE_CHANGES = ('steps', 'eval_every', 'eval_episodes')
+RESUMABLE_CHANGES = ('steps', 'eval_every', 'eval_episodes', 'stop_at_success')
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,6 +69,8 @@ class RunConfig:
     hidden: hidden layer sizes; the agent's own if empty.
     demos: recording directories of demonstrations (bc, sac_demos).
     demo_episodes: how many demonstration episodes to use.
+    stop_at_success: end the run early once an evaluation's success rate
+      reaches this (never if None).
   """
 
   domain: str
@@ -84,6 +86,7 @@ class RunConfig:
   hidden: tuple[int, ...] = ()
   demos: tuple[str, ...] = ()
   demo_episodes: int = 20
+  stop_at_success: float | None = None
 
   @property
   def agent(self) -> agents.Agent:
@@ -219,7 +222,7 @@ class _Run:
     self.log_path = output / EVAL_LOG
     self.history: list[dict] = []
     self.best: dict | None = None
-    self._wall = self._cpu = 0.0
+    self._wall = self._cpu = self._evaluating = 0.0
 
   def load_history(self) -> None:
     if self.log_path.is_file():
@@ -232,6 +235,12 @@ class _Run:
     if self.history:
       self._wall = self.history[-1]['wall_time']
       self._cpu = self.history[-1].get('cpu_time', 0.0)
+      self._evaluating = self.history[-1].get('eval_time', 0.0)
+
+  def solved(self, row: dict) -> bool:
+    """Whether `row` ends the run early (see `stop_at_success`)."""
+    target = self.config.stop_at_success
+    return target is not None and row['success_rate'] >= target
 
   def start_clocks(self) -> None:
     self._wall -= time.perf_counter()
@@ -242,13 +251,18 @@ class _Run:
     wall = self._wall + time.perf_counter()
     cpu = self._cpu + time.process_time()
     policy.save(self.output / POLICY)
+    start = time.perf_counter()
+    metrics = evaluate_policy(policy, self.config, self.config.eval_episodes)
     row = {
       'env_steps': int(steps),
       'wall_time': wall,
       'cpu_time': cpu,
+      # Evaluations so far (wall seconds, included in wall_time).
+      'eval_time': self._evaluating,
       **extra,
-      **evaluate_policy(policy, self.config, self.config.eval_episodes),
+      **metrics,
     }
+    self._evaluating += time.perf_counter() - start
     if _better(row, self.best):
       self.best = row
       policy.save(self.output / BEST_POLICY)
@@ -282,8 +296,8 @@ def _check_resume(output: pathlib.Path, config: RunConfig) -> None:
   if differences:
     raise ValueError(
       f'--resume: {output} was trained with other settings; pass the same '
-      'ones (only --steps, --eval_every and --eval_episodes may change): '
-      + '; '.join(differences)
+      'ones (only --steps, --eval_every, --eval_episodes and '
+      '--stop_at_success may change): ' + '; '.join(differences)
     )
 
 
@@ -478,7 +492,9 @@ def _reinforce(config: RunConfig, run: _Run, data, metadata, resume) -> None:
       model.save_replay_buffer(str(output / REPLAY_BUFFER))
     with open(output / ENV_STATE, 'wb') as file:
       pickle.dump(_env_states(vec_env), file)
-    run.record(agents.numpy_policy(model, metadata), model.num_timesteps)
+    row = run.record(agents.numpy_policy(model, metadata), model.num_timesteps)
+    if run.solved(row):
+      break
   vec_env.close()
 
 

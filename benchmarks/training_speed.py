@@ -1,0 +1,104 @@
+r"""Wall time to 80% success: the default agent against SB3's SAC defaults.
+
+    MUJOCO_GL=egl python benchmarks/training_speed.py [--tasks=pose_fixed,...]
+        [--seeds=0] [--output=runs/training_speed]
+
+Each (task, seed) is trained by both agents at once, one per core (so both
+see the same machine), evaluated at the same points, and stopped at the
+first evaluation with success >= 0.8 or at the budget. Printed per run:
+env steps, training wall seconds (evaluations excluded) and CPU seconds to
+80% success; then, per task, the ratio of SB3's time to the default
+agent's. A run that hits its budget unsolved gives a lower bound (">").
+Runs resume: an interrupted benchmark continues where it stopped.
+"""
+
+import argparse
+import concurrent.futures
+import json
+import multiprocessing
+import pathlib
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+AGENTS = ('sac_sb3', 'sac')
+# task -> (domain, evaluate every, budget in env steps).
+TASKS = {
+  'pose_fixed': ('dclaw', 1_000, 30_000),
+  'stand_fixed': ('dkitty', 2_000, 60_000),
+  'turn_fixed': ('dclaw', 5_000, 120_000),
+}
+SOLVED = 0.8
+
+
+def _run(task: str, seed: int, algo: str, output: str) -> dict:
+  from robel_dm.learning import train  # noqa: PLC0415
+
+  domain, every, budget = TASKS[task]
+  config = train.RunConfig(
+    domain=domain,
+    task=task,
+    algo=algo,
+    seed=seed,
+    steps=budget,
+    eval_every=every,
+    eval_episodes=1,  # Fixed tasks: every episode is the same one.
+    stop_at_success=SOLVED,
+  )
+  directory = pathlib.Path(output) / f'{task}_{algo}_seed{seed}'
+  resume = (directory / train.CONFIG).is_file()
+  history = train.curves.read_log(directory / train.EVAL_LOG) if resume else []
+  if not (history and (history[-1]['success_rate'] >= SOLVED
+                       or history[-1]['env_steps'] >= budget)):  # fmt: skip
+    history = train.train(config, directory, resume=resume, log=print)
+  last = history[-1]
+  return {
+    'task': task,
+    'seed': seed,
+    'algo': algo,
+    'solved': last['success_rate'] >= SOLVED,
+    'env_steps': last['env_steps'],
+    'train_seconds': last['wall_time'] - last['eval_time'],
+    'cpu_seconds': last['cpu_time'],
+  }
+
+
+def main() -> None:
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  parser.add_argument('--tasks', default=','.join(TASKS))
+  parser.add_argument('--seeds', default='0')
+  parser.add_argument('--output', default=str(ROOT / 'runs/training_speed'))
+  args = parser.parse_args()
+  results = []
+  context = multiprocessing.get_context('spawn')
+  with concurrent.futures.ProcessPoolExecutor(2, mp_context=context) as pool:
+    for task in args.tasks.split(','):
+      for seed in (int(s) for s in args.seeds.split(',')):
+        jobs = [
+          pool.submit(_run, task, seed, algo, args.output) for algo in AGENTS
+        ]
+        results.extend(job.result() for job in jobs)
+  print('\ntask          seed  agent     solved  env steps  train s   CPU s')
+  for r in results:
+    print(
+      f'{r["task"]:13s} {r["seed"]:4d}  {r["algo"]:8s}  '
+      f'{"yes" if r["solved"] else "no ":6s}  {r["env_steps"]:9d}  '
+      f'{r["train_seconds"]:7.0f}  {r["cpu_seconds"]:6.0f}'
+    )
+  print('\nwall time to 80% success, sac_sb3 / sac (same seeds, same run):')
+  for task, seed in dict.fromkeys((r['task'], r['seed']) for r in results):
+    rows = {
+      r['algo']: r for r in results if (r['task'], r['seed']) == (task, seed)
+    }
+    slow, fast = rows['sac_sb3'], rows['sac']
+    bound = '' if slow['solved'] else '>'
+    if not fast['solved']:
+      print(f'  {task} seed {seed}: sac did not reach 80% within its budget')
+      continue
+    ratio = slow['train_seconds'] / fast['train_seconds']
+    print(f'  {task} seed {seed}: {bound}{ratio:.1f}x')
+  (pathlib.Path(args.output) / 'summary.json').write_text(
+    json.dumps(results, indent=1)
+  )
+
+
+if __name__ == '__main__':
+  main()

@@ -1,0 +1,411 @@
+r"""The baseline table: its runs, how to run them, and its report.
+
+    # Run the table (resumable; one process per core, or a Ray cluster):
+    python -m robel_dm.learning.baselines train --queue=0 --queues=2 &
+    python -m robel_dm.learning.baselines train --queue=1 --queues=2 &
+    python -m robel_dm.learning.baselines train --ray_address=auto
+    # One run, or a selection (fnmatch patterns on the run names):
+    python -m robel_dm.learning.baselines train --only='dclaw_pose_*'
+    # docs/baselines.json, docs/baselines.md's table and one figure per task:
+    python -m robel_dm.learning.baselines report
+
+The runs come from `plan.json` (tasks, budgets, seeds, agents). Each run
+trains with `robel_dm.learning.train` into `runs/baselines/<name>/`, then
+its best policy is evaluated afresh (`final.json`): once on a Fixed task
+(whose episodes are all the same one, the simulation being deterministic),
+on `final_episodes_random` episodes with unused seeds on the others.
+Demonstrations (bc, sac_demos) are 20 episodes of the task's reference
+controller, or of the table's best solved policy of the task where there is
+none; a run whose demonstrations cannot be made yet waits for a later pass.
+"""
+
+import argparse
+import dataclasses
+import fcntl
+import fnmatch
+import json
+import os
+import pathlib
+import shutil
+import subprocess
+import sys
+import time
+from typing import Any
+
+from robel_dm import suite
+
+ROOT = pathlib.Path(__file__).resolve().parents[2]
+PLAN = json.loads((pathlib.Path(__file__).with_name('plan.json')).read_text())
+RUNS_DIR = ROOT / 'runs' / 'baselines'
+RESULTS = ROOT / 'docs' / 'baselines.json'
+DOC = ROOT / 'docs' / 'baselines.md'
+FIGURES = ROOT / 'docs' / 'baselines'
+POLICIES = ROOT / 'policies'
+FINAL = 'final.json'
+# Final evaluations are seeded apart from training and training evaluations.
+FINAL_SEED_OFFSET = 2_000_000
+
+
+@dataclasses.dataclass(frozen=True)
+class Run:
+  """One run of the table."""
+
+  domain: str
+  task: str
+  algo: str
+  seed: int
+  valve4: bool = False
+
+  @property
+  def name(self) -> str:
+    valve = '_valve4' if self.valve4 else ''
+    return f'{self.domain}_{self.task}{valve}_{self.algo}_seed{self.seed}'
+
+  @property
+  def task_kwargs(self) -> dict[str, Any]:
+    return {'valve': 'valve4'} if self.valve4 else {}
+
+  @property
+  def fixed(self) -> bool:
+    return (self.domain, self.task) in suite.FIXED
+
+  @property
+  def directory(self) -> pathlib.Path:
+    return RUNS_DIR / self.name
+
+  def config(self, demos: tuple[str, ...] = ()):
+    from robel_dm.learning import agents, train  # noqa: PLC0415
+
+    settings = PLAN['tasks'][f'{self.domain}/{self.task}']
+    steps, every = settings['steps'], settings['eval_every']
+    kind = agents.get(self.algo).kind
+    if kind == agents.ON_POLICY:
+      steps *= PLAN['on_policy_factor']
+      every *= PLAN['on_policy_factor']
+    elif kind == agents.IMITATION:
+      steps, every = PLAN['bc_epochs'], PLAN['bc_epochs'] // 10
+    return train.RunConfig(
+      domain=self.domain,
+      task=self.task,
+      task_kwargs=self.task_kwargs,
+      algo=self.algo,
+      seed=self.seed,
+      steps=steps,
+      eval_every=every,
+      eval_episodes=1 if self.fixed else PLAN['eval_episodes_random'],
+      demos=demos,
+      demo_episodes=PLAN['demo_episodes'],
+    )
+
+
+def runs() -> list[Run]:
+  """Every run of the table, in the order they are worth running: the
+  default agent on every task first, then the other agents."""
+  table = []
+  for seed in PLAN['seeds']:
+    for key in PLAN['tasks']:
+      domain, task = key.split('/')
+      table.append(Run(domain, task, PLAN['default_agent'], seed))
+      if key in PLAN['valve4']:
+        table.append(Run(domain, task, PLAN['default_agent'], seed, True))
+  for seed in PLAN['seeds']:
+    for key in PLAN['every_agent']:
+      domain, task = key.split('/')
+      for algo in PLAN['agents']:
+        if algo != PLAN['default_agent']:
+          table.append(Run(domain, task, algo, seed))
+  return table
+
+
+def select(pattern: str | None) -> list[Run]:
+  table = runs()
+  if not pattern:
+    return table
+  chosen = [r for r in table if fnmatch.fnmatch(r.name, pattern)]
+  if not chosen:
+    raise ValueError(f'no run of the table matches {pattern!r}')
+  return chosen
+
+
+def _log(run: Run) -> list[dict]:
+  from robel_dm.learning import curves, train  # noqa: PLC0415
+
+  path = run.directory / train.EVAL_LOG
+  return curves.read_log(path) if path.is_file() else []
+
+
+def finished(run: Run) -> bool:
+  return (run.directory / FINAL).is_file()
+
+
+def demonstrations(run: Run, log=print) -> str | None:
+  """The demonstration recording for `run` (made if needed), or None if
+  nothing can demonstrate the task yet."""
+  from robel_dm import evaluate, policies  # noqa: PLC0415
+
+  directory = RUNS_DIR / 'demos' / f'{run.domain}_{run.task}'
+  if (directory / 'meta' / 'episodes.jsonl').is_file():
+    lines = (directory / 'meta' / 'episodes.jsonl').read_text().splitlines()
+    if len(lines) >= PLAN['demo_episodes']:
+      return str(directory)
+  env = suite.load(run.domain, run.task)
+  try:
+    env.task.reference_action(env.physics)
+    source = 'reference'
+  except NotImplementedError:
+    source = None
+  finally:
+    env.close()
+  if source is None:
+    best = best_policy(run.domain, run.task)
+    if best is None:
+      return None
+    source = str(best)
+  shutil.rmtree(directory, ignore_errors=True)
+  directory.parent.mkdir(parents=True, exist_ok=True)
+  log(f'demonstrations of {run.domain}/{run.task} by {source}')
+  evaluate.evaluate(
+    run.domain,
+    run.task,
+    PLAN['demo_episodes'],
+    policy=source if source == 'reference' else policies.load(source),
+    seed=FINAL_SEED_OFFSET * 2,
+    record=str(directory),
+  )
+  return str(directory)
+
+
+def best_policy(domain: str, task: str) -> pathlib.Path | None:
+  """The best solved policy of the task among finished runs (valve3)."""
+  best, best_key = None, None
+  for run in runs():
+    if (run.domain, run.task, run.valve4) != (domain, task, False):
+      continue
+    if not finished(run):
+      continue
+    final = json.loads((run.directory / FINAL).read_text())
+    key = (final['success'], final['score'])
+    if final['success'] >= PLAN['solved'] and (best is None or key > best_key):
+      best, best_key = run.directory / 'policy_best.npz', key
+  return best
+
+
+def train_run(run: Run, log=print) -> dict | None:
+  """Trains `run` (resuming), evaluates its best policy, returns its
+  record; None if its demonstrations cannot be made yet."""
+  from robel_dm import evaluate, policies  # noqa: PLC0415
+  from robel_dm.learning import agents, train  # noqa: PLC0415
+
+  if finished(run):
+    return record(run)
+  demos = ()
+  if agents.get(run.algo).needs_demos:
+    source = demonstrations(run, log)
+    if source is None:
+      log(f'{run.name}: waits for a solved policy to demonstrate the task')
+      return None
+    demos = (source,)
+  config = run.config(demos)
+  resume = (run.directory / train.CONFIG).is_file()
+  train.train(config, run.directory, resume=resume, log=log)
+  best = policies.load(run.directory / train.BEST_POLICY)
+  episodes = 1 if run.fixed else PLAN['final_episodes_random']
+  results = evaluate.evaluate(
+    run.domain,
+    run.task,
+    episodes,
+    policy=best,
+    seed=FINAL_SEED_OFFSET + run.seed * 1000,
+    task_kwargs=run.task_kwargs,
+  )
+  final = {
+    'episodes': episodes,
+    'deterministic': run.fixed,
+    'success': results['success_rate'],
+    'score': results['mean_score'],
+    'return': results['mean_return'],
+    'violations': results['safety'],
+  }
+  (run.directory / FINAL).write_text(json.dumps(final, indent=1))
+  return record(run)
+
+
+def record(run: Run) -> dict:
+  """The run's line of docs/baselines.json."""
+  log = _log(run)
+  final = json.loads((run.directory / FINAL).read_text())
+  last = log[-1]
+  solved_at = next(
+    (row['env_steps'] for row in log if row['success_rate'] >= PLAN['solved']),
+    None,
+  )
+  config = json.loads((run.directory / 'config.json').read_text())
+  return {
+    'domain': run.domain,
+    'task': run.task,
+    'task_kwargs': run.task_kwargs,
+    'algo': run.algo,
+    'seed': run.seed,
+    'env_steps': last['env_steps'],
+    'budget': config['steps'],
+    'success': final['success'],
+    'score': final['score'],
+    'final_episodes': final['episodes'],
+    'deterministic': final['deterministic'],
+    'steps_to_80': solved_at,
+    'violations': final['violations'],
+    'wall_minutes': last['wall_time'] / 60,
+    'cpu_minutes': last['cpu_time'] / 60,
+    'commit': _commit(),
+    'curve': [
+      [row.get('epoch', row['env_steps']), row['success_rate']] for row in log
+    ],
+  }
+
+
+def _commit() -> str:
+  try:
+    return subprocess.run(
+      ['git', 'rev-parse', '--short', 'HEAD'],
+      cwd=ROOT,
+      capture_output=True,
+      text=True,
+      check=True,
+    ).stdout.strip()
+  except (OSError, subprocess.CalledProcessError):
+    return 'unknown'
+
+
+def merge_results(records: list[dict]) -> None:
+  """Adds or replaces records in docs/baselines.json (by run identity);
+  queues in other processes wait their turn."""
+  RESULTS.parent.mkdir(parents=True, exist_ok=True)
+  with open(RESULTS.with_suffix('.lock'), 'w') as lock:
+    fcntl.flock(lock, fcntl.LOCK_EX)
+    _merge(records)
+
+
+def _merge(records: list[dict]) -> None:
+  existing = json.loads(RESULTS.read_text()) if RESULTS.is_file() else []
+
+  def key(row):
+    return (
+      row['domain'],
+      row['task'],
+      json.dumps(row['task_kwargs']),
+      row['algo'],
+      row['seed'],
+    )
+
+  merged = {key(row): row for row in existing}
+  merged.update({key(row): row for row in records})
+  rows = sorted(merged.values(), key=key)
+  temporary = RESULTS.with_suffix('.partial')
+  temporary.write_text(json.dumps(rows, indent=1) + '\n')
+  temporary.replace(RESULTS)
+
+
+def train_queue(
+  queue: int, queues: int, pattern: str | None, hours: float | None
+) -> None:
+  """Runs this queue's share of the table, round robin, resuming; runs
+  that wait for demonstrations are tried again after the others."""
+  deadline = time.monotonic() + hours * 3600 if hours else None
+  mine = [r for i, r in enumerate(select(pattern)) if i % queues == queue]
+  waiting = []
+  for run in mine:
+    if deadline and time.monotonic() > deadline:
+      print('time budget used up; the rest resumes on the next call')
+      return
+    result = train_run(run, log=lambda line: print(line, flush=True))
+    if result is None:
+      waiting.append(run)
+    else:
+      merge_results([result])
+  for run in waiting:
+    result = train_run(run, log=lambda line: print(line, flush=True))
+    if result is not None:
+      merge_results([result])
+
+
+def _remote_train_run(run: Run, plan: dict, runs_dir: pathlib.Path):
+  """`train_run` in a Ray worker, with the driver's plan and run folder."""
+  global PLAN, RUNS_DIR  # noqa: PLW0603 (a worker process of its own)
+  PLAN, RUNS_DIR = plan, runs_dir
+  return train_run(run, log=lambda line: None)
+
+
+def train_ray(address: str, pattern: str | None) -> list[dict]:
+  """Every selected run as a Ray task (one CPU each); the records merged
+  into docs/baselines.json as they end. `address` 'local' starts a Ray
+  instance on this machine for the call."""
+  try:
+    import ray  # noqa: PLC0415
+  except ImportError as error:
+    raise ValueError(
+      '--ray_address needs Ray: pip install "robel_dm[scale]"'
+    ) from error
+  chosen = select(pattern)
+  started = not ray.is_initialized()
+  if started:
+    ray.init(
+      address=None if address == 'local' else address,
+      include_dashboard=False,
+      log_to_driver=False,
+      runtime_env={
+        'env_vars': {'MUJOCO_GL': os.environ.get('MUJOCO_GL', 'egl')}
+      },
+    )
+  try:
+    remote = ray.remote(num_cpus=1)(_remote_train_run)
+    pending = {remote.remote(run, PLAN, RUNS_DIR): run for run in chosen}
+    records = []
+    while pending:
+      done, _ = ray.wait(list(pending))
+      for ref in done:
+        run = pending.pop(ref)
+        result = ray.get(ref)
+        if result is not None:
+          records.append(result)
+          merge_results([result])
+        print(f'{run.name}: {"done" if result else "waits for demos"}')
+    return records
+  finally:
+    if started:
+      ray.shutdown()
+
+
+def main(argv: list[str] | None = None) -> int:
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  commands = parser.add_subparsers(dest='command', required=True)
+  train_parser = commands.add_parser('train', help='run the table')
+  train_parser.add_argument('--queue', type=int, default=0)
+  train_parser.add_argument('--queues', type=int, default=1)
+  train_parser.add_argument('--only', default=None, help='fnmatch pattern')
+  train_parser.add_argument('--hours', type=float, default=None)
+  train_parser.add_argument('--ray_address', default=None)
+  commands.add_parser('list', help='the runs and whether each is done')
+  commands.add_parser('report', help='docs/baselines.md, figures, policies')
+  args = parser.parse_args(argv)
+  try:
+    if args.command == 'list':
+      for run in runs():
+        print(f'{run.name:50s} {"done" if finished(run) else ""}')
+    elif args.command == 'report':
+      from robel_dm.learning import report  # noqa: PLC0415
+
+      report.write()
+    elif args.ray_address:
+      train_ray(args.ray_address, args.only)
+    else:
+      if not 0 <= args.queue < args.queues:
+        raise ValueError('--queue must be in [0, --queues)')
+      train_queue(args.queue, args.queues, args.only, args.hours)
+  except ValueError as error:
+    print(f'error: {error}', file=sys.stderr)
+    return 2
+  return 0
+
+
+if __name__ == '__main__':
+  sys.exit(main())

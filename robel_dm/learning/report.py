@@ -1,0 +1,134 @@
+"""docs/baselines.md's tables and figures, from docs/baselines.json.
+
+Everything here is derived from the records (`baselines.record`), so the
+table, the figures and the data never disagree.
+"""
+
+import collections
+import json
+import shutil
+
+from robel_dm.learning import baselines, curves
+
+START, END = '<!-- table -->', '<!-- /table -->'
+SUMMARY_START, SUMMARY_END = '<!-- summary -->', '<!-- /summary -->'
+
+
+def _name(row: dict) -> str:
+  valve = ' (valve4)' if row['task_kwargs'].get('valve') == 'valve4' else ''
+  return f'{row["domain"]}/{row["task"]}{valve}'
+
+
+def _violations(row: dict) -> str:
+  return ' / '.join(f'{v:.1f}' for v in row['violations'].values())
+
+
+def run_table(rows: list[dict]) -> str:
+  """One line per run."""
+  lines = [
+    '| Task | Agent | Seed | Env steps | Success | Episodes | Mean score '
+    '| Steps to 80% | Violations / episode (position / velocity / current) '
+    '| Wall min | CPU min |',
+    '|---|---|---|---|---|---|---|---|---|---|---|',
+  ]
+  for row in rows:
+    reached = row['steps_to_80']
+    episodes = (
+      '1 (deterministic)' if row['deterministic'] else row['final_episodes']
+    )
+    lines.append(
+      f'| {_name(row)} | {row["algo"]} | {row["seed"]} '
+      f'| {row["env_steps"]:,} | {row["success"]:.2f} '
+      f'| {episodes} '
+      f'| {row["score"]:.3f} '
+      f'| {"never" if reached is None else f"{reached:,}"} '
+      f'| {_violations(row)} | {row["wall_minutes"]:.0f} '
+      f'| {row["cpu_minutes"]:.0f} |'
+    )
+  return '\n'.join(lines)
+
+
+def summary_table(rows: list[dict]) -> str:
+  """One line per task and agent: seeds solved, success, compute."""
+  groups = collections.defaultdict(list)
+  for row in rows:
+    groups[(_name(row), row['algo'])].append(row)
+  lines = [
+    '| Task | Agent | Seeds solved (success >= 0.8) | Success per seed '
+    '| Median steps to 80% | CPU min in all |',
+    '|---|---|---|---|---|---|',
+  ]
+  for (name, algo), group in sorted(groups.items()):
+    solved = sum(row['success'] >= baselines.PLAN['solved'] for row in group)
+    reached = sorted(
+      row['steps_to_80'] for row in group if row['steps_to_80'] is not None
+    )
+    median = f'{reached[len(reached) // 2]:,}' if reached else 'never'
+    successes = ', '.join(f'{row["success"]:.2f}' for row in group)
+    lines.append(
+      f'| {name} | {algo} | {solved} of {len(group)} '
+      f'| {successes} '
+      f'| {median} | {sum(row["cpu_minutes"] for row in group):.0f} |'
+    )
+  return '\n'.join(lines)
+
+
+def _replace(text: str, start: str, end: str, body: str) -> str:
+  if start not in text or end not in text:
+    return f'{text}\n{start}\n{body}\n{end}\n'
+  head, rest = text.split(start, 1)
+  _, tail = rest.split(end, 1)
+  return f'{head}{start}\n{body}\n{end}{tail}'
+
+
+def figures(rows: list[dict]) -> list[str]:
+  """One figure per task: success against env steps per agent."""
+  baselines.FIGURES.mkdir(parents=True, exist_ok=True)
+  tasks = collections.defaultdict(lambda: collections.defaultdict(list))
+  for row in rows:
+    if row['algo'] == 'bc':
+      continue  # Epochs, not env steps: BC's result is in the tables.
+    log = [
+      {'env_steps': steps, 'success_rate': success}
+      for steps, success in row['curve']
+    ]
+    tasks[_name(row)][row['algo']].append(log)
+  written = []
+  for name, runs in sorted(tasks.items()):
+    stem = name.replace('/', '_').replace(' (valve4)', '_valve4')
+    path = baselines.FIGURES / f'{stem}.png'
+    curves.plot_task(runs, path, name)
+    written.append(path.name)
+  return written
+
+
+def ship(rows: list[dict]) -> list[str]:
+  """Copies the best solved policy of each task (valve3, default agent or
+  any) into policies/, which `--policy=baseline` runs."""
+  best = {}
+  for row in rows:
+    if row['task_kwargs'] or row['success'] < baselines.PLAN['solved']:
+      continue
+    key = (row['domain'], row['task'])
+    rank = (row['success'], row['score'])
+    if key not in best or rank > best[key][0]:
+      best[key] = (rank, row)
+  shipped = []
+  for (domain, task), (_, row) in sorted(best.items()):
+    run = baselines.Run(domain, task, row['algo'], row['seed'])
+    source = run.directory / 'policy_best.npz'
+    if source.is_file():
+      shutil.copy(source, baselines.POLICIES / f'{domain}_{task}.npz')
+      shipped.append(f'{domain}/{task} ({row["algo"]}, seed {row["seed"]})')
+  return shipped
+
+
+def write() -> None:
+  rows = json.loads(baselines.RESULTS.read_text())
+  text = baselines.DOC.read_text() if baselines.DOC.is_file() else ''
+  text = _replace(text, SUMMARY_START, SUMMARY_END, summary_table(rows))
+  text = _replace(text, START, END, run_table(rows))
+  baselines.DOC.write_text(text)
+  print(summary_table(rows))
+  print('figures:', ', '.join(figures(rows)))
+  print('shipped:', ', '.join(ship(rows)) or 'none')

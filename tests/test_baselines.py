@@ -1,0 +1,126 @@
+"""The baseline table: its plan, runs, records, report and Ray fan-out."""
+
+import copy
+import json
+
+import pytest
+
+pytest.importorskip('sbx')
+
+from robel_dm import suite  # noqa: E402
+from robel_dm.learning import agents, baselines, report  # noqa: E402
+
+FIELDS = {'domain', 'task', 'task_kwargs', 'algo', 'seed', 'env_steps',
+          'success', 'score', 'steps_to_80', 'violations', 'wall_minutes',
+          'cpu_minutes', 'commit'}  # fmt: skip
+
+
+def test_the_plan_covers_every_task_seed_and_kind_of_agent():
+  table = baselines.runs()
+  default = [r for r in table if r.algo == agents.DEFAULT and not r.valve4]
+  assert {(r.domain, r.task) for r in default} == set(suite.ALL_TASKS)
+  for domain, task in suite.ALL_TASKS:
+    seeds = {r.seed for r in default if (r.domain, r.task) == (domain, task)}
+    assert len(seeds) >= 3, (domain, task)
+  valve4 = {(r.task, r.seed) for r in table if r.valve4}
+  assert {task for task, _ in valve4} == {
+    'turn_fixed', 'turn_random', 'screw_fixed', 'screw_random'
+  }  # fmt: skip
+  kinds = {}
+  for run in table:
+    kinds.setdefault((run.task, run.seed), set()).add(
+      agents.get(run.algo).paper
+    )
+  for family in ('turn', 'walk', 'pose', 'stand'):
+    for variant in ('fixed', 'random'):
+      for seed in (0, 1, 2):
+        assert kinds[(f'{family}_{variant}', seed)] == {
+          'SAC', 'NPG', 'BC', 'DAPG'
+        }  # fmt: skip
+  names = [run.name for run in table]
+  assert len(names) == len(set(names))
+
+
+@pytest.fixture
+def sandbox(tmp_path, monkeypatch):
+  """The table's paths and a tiny plan (pose and stand only)."""
+  plan = copy.deepcopy(baselines.PLAN)
+  plan.update(seeds=[0], final_episodes_random=3, eval_episodes_random=2,
+              demo_episodes=2, bc_epochs=20)  # fmt: skip
+  plan['tasks'] = {
+    'dclaw/pose_fixed': {'steps': 16, 'eval_every': 16},
+    'dclaw/pose_random': {'steps': 16, 'eval_every': 8},
+  }
+  plan['valve4'], plan['every_agent'] = [], ['dclaw/pose_random']
+  monkeypatch.setattr(baselines, 'PLAN', plan)
+  for name, path in (('RUNS_DIR', 'runs'), ('RESULTS', 'docs/b.json'),
+                     ('DOC', 'docs/b.md'), ('FIGURES', 'docs/figures'),
+                     ('POLICIES', 'policies')):  # fmt: skip
+    monkeypatch.setattr(baselines, name, tmp_path / path)
+  (tmp_path / 'policies').mkdir()
+  return tmp_path
+
+
+def test_a_run_ends_with_a_fresh_evaluation_and_a_full_record(sandbox):
+  run = baselines.Run('dclaw', 'pose_random', 'sac', 0)
+  record = baselines.train_run(run, log=lambda line: None)
+  assert set(record) >= FIELDS
+  assert record['env_steps'] == 16 and record['final_episodes'] == 3
+  assert not record['deterministic']
+  final = json.loads((run.directory / baselines.FINAL).read_text())
+  assert final['episodes'] == 3
+  # A finished run is not trained again.
+  assert baselines.train_run(run, log=print) == record
+  fixed = baselines.train_run(
+    baselines.Run('dclaw', 'pose_fixed', 'sac', 0), log=lambda line: None
+  )
+  assert fixed['deterministic'] and fixed['final_episodes'] == 1
+
+
+def test_demonstration_runs_use_the_reference_controller(sandbox):
+  run = baselines.Run('dclaw', 'pose_random', 'bc', 0)
+  record = baselines.train_run(run, log=lambda line: None)
+  assert record['algo'] == 'bc' and record['env_steps'] == 0
+  demos = sandbox / 'runs' / 'demos' / 'dclaw_pose_random'
+  assert len((demos / 'meta' / 'episodes.jsonl').read_text().splitlines()) == 2
+
+
+def test_runs_without_a_demonstrator_wait(sandbox, monkeypatch):
+  monkeypatch.setitem(
+    baselines.PLAN['tasks'], 'dclaw/turn_fixed', {'steps': 8, 'eval_every': 8}
+  )
+  run = baselines.Run('dclaw', 'turn_fixed', 'bc', 0)
+  lines = []
+  assert baselines.train_run(run, log=lines.append) is None
+  assert 'waits for a solved policy' in lines[0]
+
+
+def test_the_report_is_derived_from_the_records(sandbox):
+  baselines.train_queue(0, 1, 'dclaw_pose_*_sac_seed0', None)
+  rows = json.loads(baselines.RESULTS.read_text())
+  assert {(r['task'], r['algo']) for r in rows} == {
+    ('pose_fixed', 'sac'), ('pose_random', 'sac')
+  }  # fmt: skip
+  baselines.DOC.write_text(
+    '# Baselines\n\n<!-- table -->\nold\n<!-- /table -->\n'
+  )
+  report.write()
+  text = baselines.DOC.read_text()
+  assert 'old' not in text
+  assert '| dclaw/pose_random | sac | 0 | 16 |' in text
+  assert '1 (deterministic)' in text
+  assert (baselines.FIGURES / 'dclaw_pose_random.png').is_file()
+
+
+def test_a_queue_takes_its_share_and_bad_selections_are_refused(sandbox):
+  with pytest.raises(ValueError, match='no run of the table matches'):
+    baselines.select('nothing_*')
+  assert baselines.main(['train', '--queue=2', '--queues=2']) == 2
+
+
+def test_the_table_fans_out_over_ray(sandbox):
+  pytest.importorskip('ray')
+  records = baselines.train_ray('local', 'dclaw_pose_*_sac_seed0')
+  assert sorted(r['task'] for r in records) == ['pose_fixed', 'pose_random']
+  rows = json.loads(baselines.RESULTS.read_text())
+  assert len(rows) == 2
