@@ -26,14 +26,11 @@ from robel_dm import (
   policies,
   provenance,
   recording,
+  result_table,
   suite,
   video,
 )
 from robel_dm.tasks import base
-
-# Kept here for callers of the command's module.
-check_output = cli_checks.check_output
-write_json = cli_checks.write_json
 
 
 def parse_task_kwargs(text: str) -> dict[str, Any]:
@@ -344,57 +341,6 @@ def evaluate(
   return results()
 
 
-_ROW_HEADER = (
-  f'{"episode":>7} {"seed":>6} {"return":>10} {"mean score":>10} '
-  f'{"success":>7} {"pos/vel/cur violations":>22}'
-)
-
-
-def format_row(index: int, record: dict[str, Any]) -> str:
-  """One episode's line of the table."""
-  safety = '/'.join(str(v) for v in record['safety'].values())
-  return (
-    f'{index:>7} {record["seed"]!s:>6} {record["return"]:>10.2f} '
-    f'{record["mean_score"]:>10.3f} '
-    f'{"yes" if record["success"] else "no":>7} {safety:>22}'
-  )
-
-
-def format_header(results: dict[str, Any]) -> str:
-  return (
-    f'{results["domain"]}/{results["task"]}  policy={results["policy"]}  '
-    f'seed={results["seed"]}  task_kwargs={results["task_kwargs"]}\n'
-    f'{_ROW_HEADER}\n{"-" * len(_ROW_HEADER)}'
-  )
-
-
-def format_summary(results: dict[str, Any]) -> str:
-  """The summary lines under the episode rows."""
-  spread = results['spread']
-  safety = results['safety']
-  return '\n'.join(
-    [
-      '-' * len(_ROW_HEADER),
-      f'success rate      {results["success_rate"]:.2f} '
-      f'({results["episodes"]} episodes; 95% interval '
-      f'{spread["success"]["ci95"][0]:.2f}..{spread["success"]["ci95"][1]:.2f})',
-      f'mean return       {results["mean_return"]:.2f} '
-      f'(std {spread["return"]["std"]:.2f})',
-      f'mean score        {results["mean_score"]:.3f} '
-      f'(std {spread["mean_score"]["std"]:.3f})',
-      'safety / episode  '
-      + ', '.join(f'{field} {value:.2f}' for field, value in safety.items()),
-      f'steps per second  {results["steps_per_second"]:.0f}',
-    ]
-  )
-
-
-def format_table(results: dict[str, Any]) -> str:
-  """Formats the results as a plain-text table."""
-  rows = [format_row(i, r) for i, r in enumerate(results['records'])]
-  return '\n'.join([format_header(results), *rows, format_summary(results)])
-
-
 def select_tasks(domain: str, task: str) -> list[tuple[str, str]]:
   """The (domain, task) pairs that --domain and --task name ('all' for
   every domain or every task of the domain(s)).
@@ -467,6 +413,12 @@ def _define_flags() -> None:
     "task's shipped trained policy), or the path of a policy.npz written "
     'by robel_dm.train.',
   )
+  flags.DEFINE_bool(
+    'allow_other_variant',
+    False,
+    'Run a policy file on another variant of the task it was trained on '
+    "(e.g. a Fixed task's policy on the Random one).",
+  )
   flags.DEFINE_string(
     'task_kwargs',
     '',
@@ -525,9 +477,13 @@ def main(argv):
   try:
     task_kwargs = parse_task_kwargs(FLAGS.task_kwargs)
     tasks = select_tasks(FLAGS.domain, FLAGS.task)
-    check_output(FLAGS.output)
-    for domain, task in tasks:  # Every task's policy file, before any runs.
-      policies.check_file(FLAGS.policy, domain, task, task_kwargs)
+    cli_checks.check_output(FLAGS.output)
+    checked = {  # Every task's policy file, before any runs.
+      task: policies.check_file(
+        FLAGS.policy, domain, task, task_kwargs, FLAGS.allow_other_variant
+      )
+      for domain, task in tasks
+    }
     sweep = len(tasks) > 1
     progress = tqdm.tqdm(
       total=len(tasks) * FLAGS.episodes, unit='episode', file=sys.stderr,
@@ -548,9 +504,9 @@ def main(argv):
       progress.update(1)
       progress.clear()
       if len(partial['records']) == 1:
-        print(format_header(partial), flush=True)
+        print(result_table.format_header(partial), flush=True)
       index = len(partial['records']) - 1
-      print(format_row(index, partial['records'][-1]), flush=True)
+      print(result_table.format_row(index, partial['records'][-1]), flush=True)
       progress.refresh()
 
     for domain, task in tasks:
@@ -558,7 +514,7 @@ def main(argv):
         domain,
         task,
         FLAGS.episodes,
-        policy=FLAGS.policy,
+        policy=(FLAGS.allow_other_variant and checked[task]) or FLAGS.policy,
         seed=FLAGS.seed,
         task_kwargs=task_kwargs,
         device_path=FLAGS.device_path,
@@ -575,7 +531,7 @@ def main(argv):
         dynamics=FLAGS.dynamics,
       )
       finished.append(results)
-      print(format_summary(results), flush=True)
+      print(result_table.format_summary(results), flush=True)
     progress.close()
   except (ValueError, RuntimeError) as error:
     print(f'error: {error}', file=sys.stderr)

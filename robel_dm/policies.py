@@ -125,6 +125,8 @@ class NumpyPolicy:
     self.activation, self.output = activation, output
     self.metadata = dict(metadata)
     self.observation_keys = tuple(metadata.get('observation_keys', ()))
+    # Whether `check_task` accepts other variants of the task's family.
+    self.any_variant = False
 
   def __repr__(self) -> str:
     meta = self.metadata
@@ -177,12 +179,21 @@ class NumpyPolicy:
     )
 
   def check_task(self, domain: str, task: str, task_kwargs=None) -> None:
-    """Raises `PolicyError` unless the policy was trained on this task."""
-    trained = (self.metadata.get('domain'), self.metadata.get('task'))
-    if trained != (domain, task):
+    """Raises `PolicyError` unless the policy was trained on this task
+    (or, with `any_variant` set, on another variant of its family: a
+    generalization study, e.g. a Fixed task's policy on the Random one)."""
+    trained = (self.metadata.get('domain'), str(self.metadata.get('task')))
+    if self.any_variant:
+      same = trained[0] == domain and (
+        trained[1].split('_')[0] == task.split('_')[0]
+      )
+    else:
+      same = trained == (domain, task)
+    if not same:
+      hint = '' if self.any_variant else ' (see --allow_other_variant)'
       raise PolicyError(
         f'the policy was trained on {trained[0]}/{trained[1]}, not '
-        f'{domain}/{task}'
+        f'{domain}/{task}{hint}'
       )
     trained_valve = self.metadata.get('task_kwargs', {}).get('valve')
     valve = (task_kwargs or {}).get('valve')
@@ -303,8 +314,9 @@ def _from_arrays(arrays: dict[str, np.ndarray]) -> NumpyPolicy:
   )
 
 
-def load(path: str | pathlib.Path) -> NumpyPolicy:
-  """Loads a `policy.npz`, checking that it is whole and well formed.
+def load(path: str | pathlib.Path, any_variant: bool = False) -> NumpyPolicy:
+  """Loads a `policy.npz`, checking that it is whole and well formed;
+  `any_variant` lets it run on other variants of its task.
 
   Raises:
     PolicyError: if the file is missing, unreadable or not a policy (one
@@ -314,13 +326,15 @@ def load(path: str | pathlib.Path) -> NumpyPolicy:
   if not path.is_file():
     raise PolicyError(f'no policy file {path}')
   try:
-    return _from_arrays(_read_arrays(path))
+    policy = _from_arrays(_read_arrays(path))
   except OSError as error:  # Unreadable: permissions, I/O errors.
     raise PolicyError(
       f'cannot read {path}: {error.strerror or error}'
     ) from None
   except PolicyError as error:
     raise PolicyError(f'{path} is not a robel_dm policy: {error}') from None
+  policy.any_variant = any_variant
+  return policy
 
 
 def _check_sizes(
@@ -363,7 +377,11 @@ def _task_sizes(domain: str, task: str, task_kwargs) -> tuple:
 
 
 def check_file(
-  name: str | Any, domain: str, task: str, task_kwargs: dict | None = None
+  name: str | Any,
+  domain: str,
+  task: str,
+  task_kwargs: dict | None = None,
+  any_variant: bool = False,
 ) -> NumpyPolicy | None:
   """Checks a policy named by path (or 'baseline') before any environment
   is built: the file is there and whole, and fits the task (trained on it,
@@ -374,6 +392,7 @@ def check_file(
     domain: the task's domain.
     task: the task's name.
     task_kwargs: the task's arguments.
+    any_variant: accept a policy of another variant of the task's family.
 
   Returns:
     The loaded policy of a policy.npz, else None.
@@ -392,7 +411,7 @@ def check_file(
     raise _unknown_policy(name)
   if not path.is_file():
     raise PolicyError(f'no policy file {path}')
-  policy = load(path)
+  policy = load(path, any_variant)
   try:
     policy.check_task(domain, task, task_kwargs)
     keys, observation_size, action_size = _task_sizes(domain, task, task_kwargs)

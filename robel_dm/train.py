@@ -89,7 +89,8 @@ def main(argv):
     )
   except ImportError as error:
     print(
-      f'error: training needs the learn extra ({error.name} is missing): '
+      f'error: training needs the learn extra '
+      f'({(error.name or "a package").split(".")[0]} is missing): '
       'pip install "robel_dm[learn]"',
       file=sys.stderr,
     )

@@ -16,7 +16,7 @@ from absl import flags
 import numpy as np
 import pytest
 
-from robel_dm import evaluate, policies, suite
+from robel_dm import cli_checks, evaluate, policies, result_table, suite
 from robel_dm.hardware import tracker_spec
 
 FLAGS = flags.FLAGS
@@ -276,12 +276,12 @@ def test_a_device_output_is_refused(device):
   if not os.path.exists(device):
     pytest.skip(f'no {device}')
   with pytest.raises(ValueError, match=f'--output: {device} is a device'):
-    evaluate.check_output(device)
+    cli_checks.check_output(device)
 
 
 def test_an_output_path_naming_a_folder_is_refused(tmp_path):
   with pytest.raises(ValueError, match='names a folder'):
-    evaluate.check_output(f'{tmp_path}/results/')
+    cli_checks.check_output(f'{tmp_path}/results/')
 
 
 class _FullDisk:
@@ -333,7 +333,7 @@ def test_a_failed_write_is_one_line_and_keeps_the_finished_episodes(
   saved = json.loads(output.read_text())  # Whole, as saved after episode 0.
   assert saved['episodes'] == len(saved['records']) == 1
   rows = [line for line in out.splitlines() if line[:7].strip().isdigit()]
-  assert rows == [evaluate.format_row(0, saved['records'][0])]
+  assert rows == [result_table.format_row(0, saved['records'][0])]
   assert [p.name for p in tmp_path.iterdir()] == ['results.json']
 
 
@@ -341,7 +341,7 @@ def test_the_json_writer_keeps_the_previous_file_when_a_write_fails(
   monkeypatch, tmp_path
 ):
   path = tmp_path / 'results.json'
-  evaluate.write_json(str(path), {'episodes': 1})
+  cli_checks.write_json(str(path), {'episodes': 1})
   real_open = open
   monkeypatch.setattr(
     builtins,
@@ -349,7 +349,7 @@ def test_the_json_writer_keeps_the_previous_file_when_a_write_fails(
     lambda *args, **kwargs: _FullDisk(real_open(*args, **kwargs)),
   )
   with pytest.raises(OSError, match='No space left'):
-    evaluate.write_json(str(path), {'episodes': 2})
+    cli_checks.write_json(str(path), {'episodes': 2})
   monkeypatch.undo()
   assert json.loads(path.read_text()) == {'episodes': 1}
   assert [p.name for p in tmp_path.iterdir()] == ['results.json']  # No debris.
@@ -461,5 +461,21 @@ def test_ctrl_c_after_a_row_is_printed_finds_it_saved(
   assert code == 130
   assert len(printed) == 1
   saved = json.loads(output.read_text())
-  rows = [evaluate.format_row(i, r) for i, r in enumerate(saved['records'])]
+  rows = [result_table.format_row(i, r) for i, r in enumerate(saved['records'])]
   assert printed == rows[: len(printed)]
+
+
+def test_a_policy_runs_on_another_variant_only_when_asked(run_main):
+  path = policies.baseline_path('dclaw', 'pose_fixed')
+  argv = ('--domain=dclaw', '--task=pose_random', f'--policy={path}',
+          '--episodes=1')  # fmt: skip
+  code, _, err = run_main(*argv)
+  assert code == 2 and '--allow_other_variant' in err
+  code, out, _ = run_main(*argv, '--allow_other_variant')
+  assert code == 0 and 'success rate' in out
+  # Another family of tasks stays refused.
+  code, _, err = run_main(
+    '--domain=dclaw', '--task=turn_random', f'--policy={path}',
+    '--allow_other_variant',
+  )  # fmt: skip
+  assert code == 2 and 'trained on dclaw/pose_fixed' in err

@@ -273,3 +273,29 @@ def test_every_agent_names_its_source_and_paper_kind():
   assert kinds == {'SAC', 'NPG', 'BC', 'DAPG'}
   for agent in agents.AGENTS.values():
     assert agent.source and agent.hidden
+
+
+@pytest.mark.parametrize('missing', ['sbx', 'stable_baselines3', 'jax'])
+def test_without_the_learn_extra_train_says_what_to_install(tmp_path, missing):
+  import subprocess  # noqa: PLC0415
+  import sys  # noqa: PLC0415
+
+  output = tmp_path / 'run'
+  program = (
+    f'import sys; sys.modules[{missing!r}] = None; '
+    f"sys.argv = ['train', '--output_dir={output}', '--steps=8']; "
+    'from absl import app; from robel_dm import train; '
+    'train._define_flags(); app.run(train.main)'
+  )
+  result = subprocess.run(
+    [sys.executable, '-c', program], capture_output=True, text=True
+  )
+  assert result.returncode == 2
+  lines = [
+    line for line in result.stderr.splitlines() if line.startswith('error')
+  ]
+  assert lines == [
+    f'error: training needs the learn extra ({missing} is missing): '
+    'pip install "robel_dm[learn]"'
+  ]
+  assert not output.exists()

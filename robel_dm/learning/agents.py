@@ -150,6 +150,19 @@ def single_thread() -> None:
   torch.set_num_threads(1)
 
 
+def check_installed(agent: Agent) -> None:
+  """Imports what `agent` needs.
+
+  Raises:
+    ImportError: naming the missing package (the `learn` extra has all).
+  """
+  if agent.kind == IMITATION:
+    import jax  # noqa: F401, PLC0415
+    import optax  # noqa: F401, PLC0415
+  else:
+    _library_class(agent.name)
+
+
 def _library_class(name: str):
   single_thread()
   if name in ('sac', 'sac_demos'):

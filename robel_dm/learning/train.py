@@ -379,6 +379,7 @@ def train(
       written.
   """
   config.check()
+  agents.check_installed(config.agent)
   metadata = metadata_of(config)  # Also checks the task's name.
   output = pathlib.Path(output_dir)
   if resume:
