@@ -5,10 +5,13 @@ environment and policy between episodes, so the records equal those of a
 serial run (`evaluate.evaluate(workers=...)`, `ray_address=...`).
 """
 
+from collections.abc import Iterator
 import concurrent.futures
+import contextlib
 import json
 import multiprocessing
 import os
+from typing import Any
 
 from robel_dm import evaluate, policies, suite
 
@@ -50,9 +53,14 @@ def local_episodes(domain, task, task_kwargs, policy, seed, count, workers):
       raise
 
 
-def ray_episodes(domain, task, task_kwargs, policy, seed, count, address):
-  """Yields the episodes' (record, steps, seconds) from Ray tasks, in
-  episode order (Ray from the `scale` extra)."""
+@contextlib.contextmanager
+def ray_session(address: str) -> Iterator[Any]:
+  """Ray, connected to `address` ('local' starts an instance here) for the
+  block unless already connected; the `scale` extra.
+
+  Raises:
+    ValueError: if Ray is not installed.
+  """
   try:
     import ray  # noqa: PLC0415
   except ImportError as error:
@@ -70,6 +78,16 @@ def ray_episodes(domain, task, task_kwargs, policy, seed, count, address):
       },
     )
   try:
+    yield ray
+  finally:
+    if started:
+      ray.shutdown()
+
+
+def ray_episodes(domain, task, task_kwargs, policy, seed, count, address):
+  """Yields the episodes' (record, steps, seconds) from Ray tasks, in
+  episode order (Ray from the `scale` extra)."""
+  with ray_session(address) as ray:
     remote = ray.remote(worker_episode)
     refs = [
       remote.remote(domain, task, task_kwargs, policy, seed + episode)
@@ -77,6 +95,3 @@ def ray_episodes(domain, task, task_kwargs, policy, seed, count, address):
     ]
     for ref in refs:
       yield ray.get(ref)
-  finally:
-    if started:
-      ray.shutdown()

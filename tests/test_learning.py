@@ -207,8 +207,13 @@ def test_baselines_are_shipped_for_solved_tasks():
   'shipped', _SHIPPED, ids=['/'.join(t) for t in _SHIPPED]
 )
 def test_shipped_baselines_solve_their_tasks(shipped):
-  results = evaluate.evaluate(*shipped, 2, policy='baseline', seed=0)
-  assert results['success_rate'] == 1.0
+  # From seeds neither training nor the table's evaluations used. A Fixed
+  # task's episodes are all the same one: one episode is the whole test.
+  fixed = shipped in suite.FIXED
+  results = evaluate.evaluate(
+    *shipped, 1 if fixed else 10, policy='baseline', seed=5_000_000
+  )
+  assert results['success_rate'] >= (1.0 if fixed else 0.8)
 
 
 def test_the_pose_baseline_runs_on_the_virtual_bus():

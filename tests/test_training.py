@@ -299,3 +299,13 @@ def test_without_the_learn_extra_train_says_what_to_install(tmp_path, missing):
     'pip install "robel_dm[learn]"'
   ]
   assert not output.exists()
+
+
+def test_resume_refuses_a_run_built_with_other_agent_settings(tmp_path):
+  config = _config(steps=16, eval_every=16)
+  learning.train(config, tmp_path, **QUIET)
+  saved = json.loads((tmp_path / 'config.json').read_text())
+  saved['hyperparameters']['batch_size'] = 256  # An older default.
+  (tmp_path / 'config.json').write_text(json.dumps(saved))
+  with pytest.raises(ValueError, match='start a new run'):
+    learning.train(config, tmp_path, resume=True, **QUIET)

@@ -62,10 +62,16 @@ class Agent:
   needs_demos: bool = False
 
 
-# The default agent's settings: SAC's usual ones (256 x 256, batch 256,
-# learning rate 3e-4, one update per env step) with the 8 updates of every
-# 8 env steps in one jitted call, and learning from 500 steps on.
-_FAST_SAC = {'train_freq': 8, 'gradient_steps': 8, 'learning_starts': 500}
+# The default agent's settings: SAC's usual ones (256 x 256, learning rate
+# 3e-4, one update per env step) with the 8 updates of every 8 env steps in
+# one jitted call, learning from 500 steps on, and batches of 128, which
+# halve the cost of an update (see docs/baselines.md, Training speed).
+_FAST_SAC = {
+  'train_freq': 8,
+  'gradient_steps': 8,
+  'learning_starts': 500,
+  'batch_size': 128,
+}
 
 AGENTS: dict[str, Agent] = {
   agent.name: agent

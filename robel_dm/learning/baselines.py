@@ -24,7 +24,6 @@ import dataclasses
 import fcntl
 import fnmatch
 import json
-import os
 import pathlib
 import shutil
 import subprocess
@@ -339,24 +338,10 @@ def train_ray(address: str, pattern: str | None) -> list[dict]:
   """Every selected run as a Ray task (one CPU each); the records merged
   into docs/baselines.json as they end. `address` 'local' starts a Ray
   instance on this machine for the call."""
-  try:
-    import ray  # noqa: PLC0415
-  except ImportError as error:
-    raise ValueError(
-      '--ray_address needs Ray: pip install "robel_dm[scale]"'
-    ) from error
+  from robel_dm import parallel  # noqa: PLC0415
+
   chosen = select(pattern)
-  started = not ray.is_initialized()
-  if started:
-    ray.init(
-      address=None if address == 'local' else address,
-      include_dashboard=False,
-      log_to_driver=False,
-      runtime_env={
-        'env_vars': {'MUJOCO_GL': os.environ.get('MUJOCO_GL', 'egl')}
-      },
-    )
-  try:
+  with parallel.ray_session(address) as ray:
     remote = ray.remote(num_cpus=1)(_remote_train_run)
     pending = {remote.remote(run, PLAN, RUNS_DIR): run for run in chosen}
     records = []
@@ -370,9 +355,6 @@ def train_ray(address: str, pattern: str | None) -> list[dict]:
           merge_results([result])
         print(f'{run.name}: {"done" if result else "waits for demos"}')
     return records
-  finally:
-    if started:
-      ray.shutdown()
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -119,6 +119,9 @@ class RunConfig:
     data = dataclasses.asdict(self)
     data['hidden'] = list(self.layers)
     data['demos'] = list(self.demos)
+    # What the agent was built with: a resume under other defaults (a newer
+    # robel_dm) would otherwise go on with other settings unnoticed.
+    data['hyperparameters'] = dict(self.agent.hyperparameters)
     return data
 
   @classmethod
@@ -286,7 +289,14 @@ def _check_resume(output: pathlib.Path, config: RunConfig) -> None:
     raise ValueError(f'--resume: no checkpoint in {output}')
   if not path.is_file():
     raise ValueError(f'--resume: {path} is missing')
-  trained = RunConfig.from_json(json.loads(path.read_text()))
+  saved = json.loads(path.read_text())
+  trained = RunConfig.from_json(saved)
+  built = saved.get('hyperparameters', config.agent.hyperparameters)
+  if trained.algo == config.algo and built != config.agent.hyperparameters:
+    raise ValueError(
+      f'--resume: {output} was built with {trained.algo} settings {built}, '
+      f'this robel_dm builds {config.agent.hyperparameters}; start a new run'
+    )
   differences = [
     f'{name}: {getattr(trained, name)!r} (now {getattr(config, name)!r})'
     for name in (f.name for f in dataclasses.fields(RunConfig))
