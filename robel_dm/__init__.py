@@ -5,7 +5,7 @@ import warnings
 
 __version__ = '0.1.0'
 
-# The Gymnasium ids (see robel_dm.gym) must be registered whenever both
+# The Gymnasium ids (see robel_dm.learning.gym) must be registered whenever both
 # robel_dm and gymnasium are imported, in either order, so that
 # `gymnasium.make('robel_dm:robel_dm/DClawTurnFixed-v0')` works even when
 # robel_dm was imported first (Gymnasium's `robel_dm:` prefix only imports
@@ -19,10 +19,10 @@ __version__ = '0.1.0'
 
 
 def _register_gymnasium_ids() -> None:
-  # When the import of robel_dm.gym is what imported gymnasium, that module
-  # is still loading and registers the ids itself at its end.
-  if 'robel_dm.gym' not in sys.modules:
-    from robel_dm import gym  # noqa: F401, PLC0415
+  # When the import of robel_dm.learning.gym is what imported gymnasium,
+  # that module is still loading and registers the ids itself at its end.
+  if 'robel_dm.learning.gym' not in sys.modules:
+    from robel_dm.learning import gym  # noqa: F401, PLC0415
 
 
 class _GymnasiumImportHook:

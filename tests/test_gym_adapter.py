@@ -19,8 +19,8 @@ import pytest
 
 gymnasium = pytest.importorskip('gymnasium')
 
-from robel_dm import gym as robel_gym  # noqa: E402
 from robel_dm import suite  # noqa: E402
+from robel_dm.learning import gym as robel_gym  # noqa: E402
 
 _TASK = ('dclaw', 'pose_fixed')
 _NUM_ACTIONS = 9
@@ -150,15 +150,15 @@ _IMPORT_ORDERS = {
     'robel_dm/DClawTurnFixed-v0',
   ),
   'robel_dm_gym_prefixed': (
-    'import robel_dm.gym\nimport gymnasium',
+    'import robel_dm.learning.gym\nimport gymnasium',
     'robel_dm:robel_dm/DClawTurnFixed-v0',
   ),
   'robel_dm_gym': (
-    'import robel_dm.gym\nimport gymnasium',
+    'import robel_dm.learning.gym\nimport gymnasium',
     'robel_dm/DClawTurnFixed-v0',
   ),
   'gymnasium_then_robel_dm_gym': (
-    'import gymnasium\nimport robel_dm.gym',
+    'import gymnasium\nimport robel_dm.learning.gym',
     'robel_dm/DClawTurnFixed-v0',
   ),
   'robel_dm_train_then_make': (
@@ -189,7 +189,8 @@ def test_importing_robel_dm_stays_light():
   result = _run("""
     import sys
     import robel_dm
-    heavy = {'gymnasium', 'robel_dm.gym', 'robel_dm.suite', 'dm_control'}
+    heavy = {'gymnasium', 'robel_dm.learning.gym', 'robel_dm.suite',
+             'dm_control'}
     assert not heavy & set(sys.modules), heavy & set(sys.modules)
   """)
   assert result.returncode == 0, result.stderr
@@ -204,7 +205,7 @@ def test_robel_dm_works_without_gymnasium():
     env = suite.load('dclaw', 'pose_fixed', seed=0)
     env.reset()
     env.step([0.0] * 9)
-    assert 'robel_dm.gym' not in sys.modules
+    assert 'robel_dm.learning.gym' not in sys.modules
   """)
   assert result.returncode == 0, result.stderr
 

@@ -13,7 +13,7 @@ gymnasium = pytest.importorskip('gymnasium')
 from gymnasium.utils import env_checker  # noqa: E402
 
 from robel_dm import evaluate, policies, suite  # noqa: E402
-from robel_dm import gym as robel_gym  # noqa: E402
+from robel_dm.learning import gym as robel_gym  # noqa: E402
 
 _IDS = robel_gym.env_ids()
 # ROBEL's flat observation sizes per family.

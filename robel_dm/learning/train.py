@@ -159,7 +159,7 @@ class TrainingEnv(gymnasium.Wrapper):
 
 def make_env(config: RunConfig, index: int) -> TrainingEnv:
   """Training environment `index` of a run."""
-  from robel_dm import gym as robel_gym  # noqa: PLC0415
+  from robel_dm.learning import gym as robel_gym  # noqa: PLC0415
 
   env = robel_gym.RobelEnv(
     config.domain,

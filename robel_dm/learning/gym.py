@@ -6,8 +6,8 @@
     action = env.action_space.sample()
     obs, reward, terminated, truncated, info = env.step(action)
 
-(`import robel_dm.gym` registers the ids too; then the `robel_dm:` prefix
-can be left out.)
+(`import robel_dm.learning.gym` registers the ids too; then the
+`robel_dm:` prefix can be left out.)
 
 The observation is ROBEL's flat agent vector (float32, in the order of the
 task's `agent_observation_keys`); the action a float32 Box in [-1, 1]. The
@@ -228,7 +228,7 @@ def register_environments() -> None:
       continue
     gymnasium.register(
       id=env_id,
-      entry_point='robel_dm.gym:RobelEnv',
+      entry_point='robel_dm.learning.gym:RobelEnv',
       kwargs={'domain': domain, 'task': task, 'id_task_kwargs': task_kwargs},
     )
 
