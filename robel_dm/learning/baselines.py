@@ -41,6 +41,7 @@ DOC = ROOT / 'docs' / 'baselines.md'
 FIGURES = ROOT / 'docs' / 'baselines'
 POLICIES = ROOT / 'policies'
 FINAL = 'final.json'
+COMMIT = 'commit.txt'
 # Final evaluations are seeded apart from training and training evaluations.
 FINAL_SEED_OFFSET = 2_000_000
 
@@ -206,6 +207,9 @@ def train_run(run: Run, log=print) -> dict | None:
     demos = (source,)
   config = run.config(demos)
   resume = (run.directory / train.CONFIG).is_file()
+  run.directory.mkdir(parents=True, exist_ok=True)
+  if not (run.directory / COMMIT).is_file():  # The code the run began with.
+    (run.directory / COMMIT).write_text(_commit())
   train.train(config, run.directory, resume=resume, log=log)
   best = policies.load(run.directory / train.BEST_POLICY)
   episodes = 1 if run.fixed else PLAN['final_episodes_random']
@@ -255,7 +259,9 @@ def record(run: Run) -> dict:
     'violations': final['violations'],
     'wall_minutes': last['wall_time'] / 60,
     'cpu_minutes': last['cpu_time'] / 60,
-    'commit': _commit(),
+    'commit': (run.directory / COMMIT).read_text().strip()
+    if (run.directory / COMMIT).is_file()
+    else 'unknown',
     'curve': [
       [row.get('epoch', row['env_steps']), row['success_rate']] for row in log
     ],
