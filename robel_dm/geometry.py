@@ -25,15 +25,25 @@ def wrap_angle(angle):
   return (angle + np.pi) % (2 * np.pi) - np.pi
 
 
+def dot(a: np.ndarray, b: np.ndarray) -> float:
+  """Inner product of two small vectors, the same on every CPU.
+
+  numpy's own summation in a fixed order, not BLAS (np.dot and
+  np.linalg.norm): OpenBLAS picks its kernel by CPU, and kernels round
+  differently, so rewards would differ in the last bit between machines.
+  """
+  return float(np.add.reduce(np.multiply(a, b)))
+
+
 def norm(vector: np.ndarray) -> float:
-  """Euclidean norm of a small vector (cheaper than np.linalg.norm)."""
-  return math.sqrt(float(np.dot(vector, vector)))
+  """Euclidean norm of a small vector (see `dot`)."""
+  return math.sqrt(dot(vector, vector))
 
 
 def cosine(a: np.ndarray, b: np.ndarray) -> float:
   """Cosine of the angle between two vectors (0 if either is zero)."""
-  denominator = math.sqrt(float(np.dot(a, a)) * float(np.dot(b, b)))
-  return float(np.dot(a, b)) / denominator if denominator > 0 else 0.0
+  denominator = math.sqrt(dot(a, a) * dot(b, b))
+  return dot(a, b) / denominator if denominator > 0 else 0.0
 
 
 # --- Euler angles -----------------------------------------------------------
@@ -108,7 +118,7 @@ def quat_normalize(q) -> np.ndarray:
     ValueError: if q is not finite or (nearly) zero.
   """
   q = np.asarray(q, dtype=float)
-  length = np.linalg.norm(q)
+  length = norm(q)
   if not np.isfinite(length) or length < 1e-9:
     raise ValueError(f'not a rotation quaternion: {q}')
   return q / length
@@ -182,7 +192,7 @@ def matrix_to_quat(matrix) -> np.ndarray:
 def quat_from_rotation_vector(vector) -> np.ndarray:
   """exp: the rotation by |vector| rad about vector's direction."""
   vector = np.asarray(vector, dtype=float)
-  angle = float(np.linalg.norm(vector))
+  angle = norm(vector)
   if angle < 1e-12:
     return np.array([1.0, *(vector / 2)])
   axis = vector / angle
@@ -194,7 +204,7 @@ def quat_to_rotation_vector(q) -> np.ndarray:
   q = quat_normalize(q)
   if q[0] < 0:  # The same rotation; this sign gives the shorter way.
     q = -q
-  sine = float(np.linalg.norm(q[1:]))
+  sine = norm(q[1:])
   if sine < 1e-12:
     return 2.0 * q[1:]
   return 2.0 * math.atan2(sine, q[0]) * q[1:] / sine

@@ -200,7 +200,7 @@ class PoseTask(base.RobelTask):
     else:
       self._true_error = self._qpos_error_feature
     abs_error = np.abs(self._true_error, out=self._abs_error)
-    self._mean_error = float(np.dot(abs_error, self._joint_weights))
+    self._mean_error = geometry.dot(abs_error, self._joint_weights)
 
   def _compute_reward_terms(self) -> dict[str, float]:
     speed_squared = np.square(self._qvel, out=self._speed_squared)
@@ -210,7 +210,7 @@ class PoseTask(base.RobelTask):
     return {
       'pose_error_cost': -geometry.norm(self._true_error),
       'joint_vel_cost': -REWARD.joint_vel_weight
-      * math.sqrt(np.dot(speed_squared, fast)),
+      * math.sqrt(geometry.dot(speed_squared, fast)),
     }
 
   def _compute_score(self) -> float:

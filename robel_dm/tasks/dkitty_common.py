@@ -119,7 +119,8 @@ class Torso:
     rotation = self.rotation.tolist()
     euler = geometry.euler_xyz(rotation)
     # The free joint's angular velocity is in the torso frame.
-    angular_velocity = np.dot(self.rotation, self._qvel[3:])
+    # Row by row in numpy's own order (see geometry.dot), not BLAS.
+    angular_velocity = np.add.reduce(self.rotation * self._qvel[3:], axis=1)
     position = self.position - dkitty.ROBEL_FRAME_ORIGIN
     out[:] = (
       rotation[2][2],

@@ -147,7 +147,7 @@ class StandTask(base.RobelTask):
       self._goal_pose, self._sensed_qpos, out=self._pose_error_feature
     )
     error = np.abs(self._goal_pose - self._qpos, out=self._abs_error)
-    self._mean_error = float(np.dot(error, self._joint_weights))
+    self._mean_error = geometry.dot(error, self._joint_weights)
 
   def _compute_reward_terms(self) -> dict[str, float]:
     error = self._mean_error
