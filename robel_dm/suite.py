@@ -17,6 +17,11 @@ from typing import Any
 from robel_dm import calibration as calibration_lib
 from robel_dm import constants, registry
 from robel_dm.environment import Environment
+
+# Installs the exit-signal handlers that release a robot's motors, from the
+# thread importing the suite (the main thread, as a rule): only the main
+# thread can install them, and a robot may be driven from another thread.
+from robel_dm.hardware import shutdown  # noqa: F401, I001
 from robel_dm.tasks import (  # noqa: F401  (imported to register the tasks)
   base,
   dclaw_pose,

@@ -6,9 +6,11 @@ virtual bus whose motors a MuJoCo simulation drives in simulated time.
 """
 
 import json
+import math
 
 import numpy as np
 import pytest
+import test_robot_safety as safety
 
 from robel_dm import evaluate, suite
 from robel_dm.hardware import config as config_lib
@@ -29,6 +31,16 @@ port_handler = sdk.port_handler
 # steps: D'Claw 0.003 (pose) to 0.058 (turn); D'Kitty 0.025 rad in joint
 # angles and 0.11 rad/s in joint velocities (stand).
 _TRACKING_TOLERANCE = {'dclaw': 0.1, 'dkitty': 0.25}
+
+# The current safety counter counts the joint motors drawing more than this,
+# mA: ROBEL's D'Claw limit (docs/robel_reference.md section 2.3), and
+# robel_dm's D'Kitty limit (1 A; ROBEL defines the counters for the D'Claw
+# only).
+_SAFE_CURRENT = {'dclaw': 200.0, 'dkitty': 1000.0}
+_SAFETY_TASKS = [('dclaw', 'pose_fixed'), ('dkitty', 'stand_fixed')]
+
+# test_robot_safety's fixture, here too.
+lockstep = safety.lockstep
 
 
 @pytest.fixture
@@ -113,6 +125,85 @@ def test_safety_counts_measured_currents():
     env.close()
 
 
+def _current_counter(env) -> int:
+  """The current safety counter, as the task reports it."""
+  return int(env.task.task_observables['safety'](env.physics)[2])
+
+
+@pytest.mark.parametrize(
+  'domain_task', _SAFETY_TASKS, ids=lambda task: '-'.join(task)
+)
+def test_current_counter_on_hand_built_currents(domain_task):
+  limit = _SAFE_CURRENT[domain_task[0]]
+  env = suite.load(*domain_task, seed=0, device_path='virtual')
+  try:
+    env.reset()
+    currents = env.physics.motor_currents  # What the task reads, mA.
+    joints = len(currents)
+
+    def count(values) -> int:
+      currents[:] = values
+      env.task._update(env.physics, env.random_state)
+      return _current_counter(env)
+
+    just_over, just_under = limit + 0.01, limit - 0.01
+    for motor in range(joints):
+      one = np.zeros(joints)
+      for sign in (1, -1):  # The magnitude counts, whatever the sign.
+        one[motor] = sign * just_over
+        assert count(one) == 1, (motor, one[motor])
+        one[motor] = sign * just_under
+        assert count(one) == 0, (motor, one[motor])
+        one[motor] = sign * limit  # At the limit is not over it.
+        assert count(one) == 0, (motor, one[motor])
+      # One motor just over, every other just under.
+      mixed = np.full(joints, just_under)
+      mixed[motor] = -just_over
+      assert count(mixed) == 1, motor
+    assert count(np.full(joints, just_over)) == joints
+    assert count(np.full(joints, -just_under)) == 0
+  finally:
+    env.close()
+
+
+@pytest.mark.parametrize(
+  'domain_task', _SAFETY_TASKS, ids=lambda task: '-'.join(task)
+)
+def test_current_counter_counts_currents_the_servos_report(domain_task):
+  # Each joint motor in turn reports the smallest current over the limit it
+  # can (in whole current units), every other the largest under it; signs
+  # alternate. Then all report one over.
+  limit = _SAFE_CURRENT[domain_task[0]]
+  env = suite.load(*domain_task, seed=0, device_path='virtual')
+  bus = env.virtual_bus
+  try:
+    env.reset()
+    ids = env.robot.joint_ids
+    unit = table.MODELS[bus.servo(ids[0]).model_number][1]  # mA per unit.
+    over = math.floor(limit / unit) + 1
+    under = math.ceil(limit / unit) - 1
+    assert under * unit < limit < over * unit  # The test's own data.
+    signs = [(-1) ** i for i in range(len(ids))]
+    hold = env.task.normalize_joint_targets(
+      env.physics.bind(env.task.robot.joints).qpos
+    )
+    for i, motor_id in enumerate(ids):
+      for other, sign in zip(ids, signs, strict=True):
+        units = over if other == motor_id else under
+        bus.servo(other).inject_current(sign * units)
+      timestep = env.step(hold)
+      assert timestep.mid()
+      assert timestep.observation['safety'][2] == 1, motor_id
+      currents = env.physics.motor_currents  # What the task read, mA.
+      assert currents[i] == pytest.approx(signs[i] * over * unit)
+      assert np.abs(np.delete(currents, i)).max() == pytest.approx(under * unit)
+    for motor_id in ids:
+      bus.servo(motor_id).inject_current(over)
+    assert env.step(hold).observation['safety'][2] == len(ids)
+  finally:
+    env.close()
+
+
 def test_torque_is_off_after_close():
   env = suite.load('dclaw', 'turn_fixed', seed=0, device_path='virtual')
   bus = env.virtual_bus
@@ -189,7 +280,9 @@ def test_overload_stops_the_episode_naming_the_motor():
     env.close()
 
 
-def test_a_motor_that_disappears_is_named_and_the_rest_released(short_timeouts):
+def test_a_motor_that_disappears_is_named_and_the_rest_released(
+  lockstep, short_timeouts
+):
   env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
   bus = env.virtual_bus
   try:

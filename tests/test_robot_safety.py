@@ -21,7 +21,8 @@ import pytest
 from robel_dm import suite
 from robel_dm.hardware import config as config_lib
 from robel_dm.hardware import control_table as table
-from robel_dm.hardware import dynamixel, shutdown
+from robel_dm.hardware import dynamixel, shutdown, virtual
+from robel_dm.hardware.protocol import Instruction
 
 # Without the hardware extra these tests are skipped, not errors.
 sdk = pytest.importorskip('dynamixel_sdk')
@@ -35,6 +36,64 @@ _STARTUP_TIMEOUT_S = 60
 def short_timeouts(monkeypatch):
   """A silent motor costs ~6 ms instead of ~34 ms (fault tests only)."""
   monkeypatch.setattr(port_handler, 'LATENCY_TIMER', 2)
+
+
+def _wait_for(condition, describe, timeout_s: float = 60.0) -> None:
+  """Waits until `condition()`; a hang guard (60 s) fails with `describe()`."""
+  deadline = time.monotonic() + timeout_s
+  while not condition():
+    assert time.monotonic() < deadline, describe()
+    time.sleep(0.0002)
+
+
+@pytest.fixture
+def lockstep(monkeypatch):
+  """The SDK in lockstep with the in-process virtual buses started from now.
+
+  The SDK gives up on a reply after a wall-clock timeout (about 6 ms with
+  `short_timeouts`), and a virtual bus answers from its own thread: on a
+  busy machine a healthy motor's reply can miss the timeout, and that motor
+  is then called silent or corrupted, or its late reply is taken for
+  another's. In lockstep every packet the SDK sends waits until the bus has
+  answered it (the bus counts the bytes it has answered, `bytes_in`) and
+  the whole reply (`bytes_out`) is readable: a reply is missing only if the
+  bus sent none, whatever the load, and a fault injected between calls hits
+  the next packets sent. Request it before any fixture that loads a robot.
+  """
+  servers = {}  # Device path -> the server started on it.
+  start = virtual.PtyBusServer.start
+  write = sdk.PortHandler.writePort
+
+  def start_and_record(server):
+    start(server)
+    servers[server.device_path] = server
+    return server
+
+  def write_in_lockstep(port, packet):
+    server = servers.get(port.port_name)
+    if server is None:
+      return write(port, packet)
+    replied = server.stats['bytes_out']  # The bus is idle: all answered.
+    written = write(port, packet)
+    sent = port.lockstep_sent = getattr(port, 'lockstep_sent', 0) + written
+    _wait_for(
+      lambda: server.stats['bytes_in'] >= sent,
+      lambda: (
+        f'the bus answered {server.stats["bytes_in"]} of the {sent} bytes '
+        f'sent (running: {server.running}, errors: {server.errors})'
+      ),
+    )
+    reply = server.stats['bytes_out'] - replied
+    _wait_for(
+      lambda: port.ser.in_waiting >= reply,
+      lambda: f'{port.ser.in_waiting} of {reply} reply bytes readable',
+    )
+    return written
+
+  monkeypatch.setattr(virtual.PtyBusServer, 'start', start_and_record)
+  monkeypatch.setattr(sdk.PortHandler, 'writePort', write_in_lockstep)
+  yield
+  assert servers, 'no bus started in lockstep: request lockstep first'
 
 
 @pytest.fixture
@@ -280,14 +339,20 @@ def test_goal_writes_lost_twice_in_a_row_stop_with_an_error(claw):
 # --- Errors name what failed --------------------------------------------------
 
 
-def test_corrupted_replies_blame_the_motor_that_sent_them(short_timeouts, claw):
+def test_corrupted_replies_blame_the_motor_that_sent_them(
+  lockstep, short_timeouts, claw
+):
   env, bus = claw, claw.virtual_bus
+  reads = bus.servo(22).counters[Instruction.SYNC_READ]
   bus.faults.corrupt_next(22, count=3)  # Every attempt of one read.
   with pytest.raises(dynamixel.DynamixelError) as error:
     env.step(np.zeros(9))
   assert error.value.motor_ids == (22,)
   assert 'motor 22 answered with corrupted replies' in str(error.value)
   assert not isinstance(error.value, dynamixel.MissingMotorError)
+  # The three corrupted replies were those to the state read's 3 attempts.
+  assert bus.servo(22).counters[Instruction.SYNC_READ] == reads + 3
+  assert not bus.faults.corrupt_crc
 
 
 def test_a_late_reply_is_not_taken_for_a_motors_state(claw, monkeypatch):

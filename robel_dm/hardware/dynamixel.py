@@ -13,17 +13,19 @@ failed (silent, or corrupted replies; a silent bus is named as such).
 Nothing stale is ever returned: a read either delivers fresh data for every
 motor or raises. The state read also reads back each motor's Goal Position,
 so a goal write lost on the way (a sync write has no reply) is noticed
-within the control step, sent again, and reported if it is lost again.
+within the control step, sent again and read back before the step returns,
+and reported if it is lost again.
 
 A client owns its port exclusively (see `port`), and until it disconnects it
 is registered with `shutdown`, which releases its motors however the
-session ends.
+session ends. Every transaction holds the client's bus lock: a release from
+another thread (an exit signal) never interleaves its packets with a
+control step's, and once the client is closed every transaction raises.
 """
 
 import logging
 import struct
 import threading
-import time
 
 import numpy as np
 
@@ -50,9 +52,9 @@ except ImportError:  # pragma: no cover - exercised without the extra
 # tick, moving, moving status and PWM (6, skipped), current (2), velocity (4),
 # position (4).
 _STATE_FORMAT = struct.Struct('<i6xhii')
-_TORQUE_RETRY_INTERVAL_S = 0.05
-# A goal write that two state reads in a row find missing is an error.
-_MAX_LOST_GOAL_WRITES = 2
+# A goal write found missing is sent again (and read back) this often; still
+# missing then, it is an error.
+_GOAL_RESENDS = 1
 
 
 def _require_sdk():
@@ -120,12 +122,13 @@ class DynamixelClient(register_access.RegisterAccess):
     self._current_units = np.zeros(len(ids))
     self._state = np.zeros((3, len(ids)))  # current, velocity, position.
     # Goal ticks last sent to each motor, and whether a read has yet to
-    # confirm them; consecutive reads that found them missing.
+    # confirm them.
     self._sent_goals = np.zeros(len(ids), dtype=np.int64)
     self._goal_pending = np.zeros(len(ids), dtype=bool)
-    self._lost_goal_writes = np.zeros(len(ids), dtype=int)
     self._column = {motor_id: i for i, motor_id in enumerate(ids)}
-    self._disconnect_lock = threading.Lock()
+    # Held by every transaction, and by a release or disconnect throughout.
+    self._bus_lock = threading.RLock()
+    self._transaction = None  # Ident of the thread inside a transaction.
     self._bus_silent = False  # Known to answer nothing: skip confirmations.
     self._state_reader = None
     self._goal_writer = None
@@ -164,6 +167,8 @@ class DynamixelClient(register_access.RegisterAccess):
     """
     if self._port is not None:
       return
+    if shutdown.exit_signal() is not None:
+      raise self._not_connected()
     port = _port_handler_class()(self._device_path)
     try:
       opened = port.openPort()
@@ -182,10 +187,10 @@ class DynamixelClient(register_access.RegisterAccess):
       port.closePort()
       raise
     self._port = port
-    self._packets = sdk.PacketHandler(table.PROTOCOL_VERSION)
+    self._packets = register_access.packet_handler()
     self._probing = not check_motors
     self._bus_silent = False
-    shutdown.register(self, self.disconnect)
+    shutdown.register(self, self._release_at_exit)
     if self._probing:
       return
     try:
@@ -238,7 +243,7 @@ class DynamixelClient(register_access.RegisterAccess):
     signal interrupts it, and a failing port does not stop it. After
     `connect(check_motors=False)` the torque is left as it is.
     """
-    with self._disconnect_lock, shutdown.deferred_signals():
+    with shutdown.deferred_signals(), self._bus_lock:
       if self._port is None:
         return
       try:
@@ -253,12 +258,24 @@ class DynamixelClient(register_access.RegisterAccess):
     Like `disconnect`, never interrupted by a signal and never stopped by a
     failing port (failures are logged).
     """
-    with self._disconnect_lock, shutdown.deferred_signals():
+    with shutdown.deferred_signals(), self._bus_lock:
       if self._port is not None and not self._probing:
         self._release_all()
 
+  def _release_at_exit(self) -> None:
+    """`disconnect`, at exit or on an exit signal, from whichever thread.
+
+    The bus lock waits for another thread's transaction to end; the client
+    then refuses every command. A transaction of this thread that the
+    signal interrupted is left to unwind (its error releases the motors,
+    and atexit does at the latest).
+    """
+    if self._transaction != threading.get_ident():
+      self.disconnect()
+
   def _release_all(self) -> None:
-    """Torque off for every motor: broadcast, then confirmed one by one."""
+    """Torque off for every motor: broadcast, then confirmed one by one,
+    each retried for a while (`confirm_torque_off`)."""
     try:
       with port_lib.port_errors(self._device_path, 'releasing the motors'):
         self._call(
@@ -269,22 +286,18 @@ class DynamixelClient(register_access.RegisterAccess):
         )
         if self._bus_silent:
           return
-        for motor_id in self._ids:
-          result, _ = self._call(
-            self._packets.write1ByteTxRx,
-            motor_id,
-            table.TORQUE_ENABLE.address,
-            0,
-          )
-          if result != sdk.COMM_SUCCESS:
-            logging.error(
-              'motor %d did not confirm its torque off on %s (a broadcast '
-              'asked every motor)',
-              motor_id,
-              self._device_path,
-            )
+        held = [i for i in self._ids if not self.confirm_torque_off(i)]
     except port_lib.PortError as error:
       logging.error('could not release the motors: %s', error)
+      return
+    if held:
+      logging.error(
+        'motors %s on %s did not confirm their torque off within %.1f s '
+        'each (a broadcast asked every motor): they may still hold it',
+        held,
+        self._device_path,
+        register_access.RELEASE_CONFIRM_S,
+      )
 
   def _close_port(self) -> None:
     port, self._port = self._port, None
@@ -309,7 +322,16 @@ class DynamixelClient(register_access.RegisterAccess):
 
   def _check_connected(self) -> None:
     if self._port is None:
-      raise DynamixelError(f'not connected to {self._device_path}')
+      raise self._not_connected()
+
+  def _not_connected(self) -> DynamixelError:
+    signum = shutdown.exit_signal()
+    if signum is None:
+      return DynamixelError(f'not connected to {self._device_path}')
+    return DynamixelError(
+      f'the motors on {self._device_path} were released on {signum.name}: '
+      'the program is exiting, and nothing more is sent'
+    )
 
   def _check_motors_checked(self) -> None:
     self._check_connected()
@@ -320,17 +342,27 @@ class DynamixelClient(register_access.RegisterAccess):
       )
 
   def _call(self, function, *args):
-    """Runs one SDK transaction; clears the SDK's port lock around it.
+    """Runs one SDK transaction under the bus lock; clears the SDK's port
+    lock around it.
 
     An exception inside the SDK leaves `port.is_using` set, after which
     every call would answer COMM_PORT_BUSY (docs/dynamixel.md section 3.5).
+
+    Raises:
+      DynamixelError: if the client is not connected (any more).
     """
-    self._port.is_using = False
-    try:
-      with port_lib.port_errors(self._device_path, 'talking to the motors'):
-        return function(self._port, *args)
-    finally:
-      self._port.is_using = False
+    with self._bus_lock:
+      port = self._port
+      if port is None:
+        raise self._not_connected()
+      self._transaction = threading.get_ident()
+      port.is_using = False
+      try:
+        with port_lib.port_errors(self._device_path, 'talking to the motors'):
+          return function(port, *args)
+      finally:
+        self._transaction = None
+        port.is_using = False
 
   def ping(self, motor_id: int, attempts: int | None = None) -> int:
     """Pings a motor and returns its model number.
@@ -392,7 +424,7 @@ class DynamixelClient(register_access.RegisterAccess):
       short = self._first_unread(reader)
       if result == sdk.COMM_SUCCESS and short is None:
         break
-      if result == sdk.COMM_SUCCESS:
+      if result in (sdk.COMM_SUCCESS, register_access.COMM_WRONG_LENGTH):
         # A well-formed reply of another length: a late reply to an earlier
         # packet (a ping that timed out) was taken for this motor's. Drop
         # whatever else is waiting and read again.
@@ -401,6 +433,9 @@ class DynamixelClient(register_access.RegisterAccess):
       failures.append((short, result))
     else:
       raise self._read_failure(failures)
+    # Every motor answered: a bus once found silent is back, and releases
+    # confirm each motor again.
+    self._bus_silent = False
     state = self._state
     goals = np.empty(len(self._ids), dtype=np.int64)
     for column, motor_id in enumerate(self._ids):
@@ -468,28 +503,34 @@ class DynamixelClient(register_access.RegisterAccess):
     )
 
   def _confirm_goals(self, goals: np.ndarray) -> None:
-    """Checks that the motors hold the goals last sent; re-sends lost ones.
+    """Checks that the motors hold the goals last sent; re-sends lost ones
+    and reads them back (nothing returns while a goal is unconfirmed).
 
     Raises:
-      DynamixelError: naming motors whose goal was lost twice in a row.
+      DynamixelError: naming motors whose goal is still missing after
+        `_GOAL_RESENDS` re-sends.
     """
-    pending = self._goal_pending
-    lost = pending & (goals != self._sent_goals)
-    self._lost_goal_writes[pending & ~lost] = 0
-    pending &= lost
-    if not lost.any():
-      return
-    self._lost_goal_writes[lost] += 1
-    ids = [self._ids[i] for i in np.flatnonzero(lost)]
-    if self._lost_goal_writes.max() >= _MAX_LOST_GOAL_WRITES:
+    lost = np.flatnonzero(self._goal_pending & (goals != self._sent_goals))
+    self._goal_pending[:] = False
+    for _ in range(_GOAL_RESENDS):
+      if not lost.size:
+        return
+      ids = [self._ids[i] for i in lost]
+      logging.warning('goal write lost on motors %s: sent again', ids)
+      self._send_goal_ticks(self._sent_goals[lost], ids)
+      held = self.read_register(table.GOAL_POSITION, ids)
+      self._goal_pending[:] = False  # Read back: confirmed, or raised below.
+      lost = np.array(
+        [i for i in lost if held[self._ids[i]] != self._sent_goals[i]], int
+      )
+    if lost.size:
+      ids = [self._ids[i] for i in lost]
       raise DynamixelError(
         f'motors {ids} did not take their goal positions '
-        f'{_MAX_LOST_GOAL_WRITES} times in a row on {self._device_path} '
+        f'{_GOAL_RESENDS + 1} times in a row on {self._device_path} '
         '(lost packets, or goals beyond their position limits)',
         ids,
       )
-    logging.warning('goal write lost on motors %s: sent again', ids)
-    self._send_goal_ticks(self._sent_goals[lost], ids)
 
   def write_goal_positions(self, positions, motor_ids=None) -> None:
     """Sends goal positions (motor angles, rad) in one sync write.
@@ -517,12 +558,16 @@ class DynamixelClient(register_access.RegisterAccess):
     self._send_goal_ticks(ticks, ids)
 
   def _send_goal_ticks(self, ticks: np.ndarray, ids) -> None:
-    writer = self._goal_writer
-    writer.clearParam()
-    for motor_id, tick in zip(ids, ticks.tolist(), strict=True):
-      raw = table.to_unsigned(tick, table.GOAL_POSITION.size)
-      writer.addParam(motor_id, list(raw.to_bytes(4, 'little')))
-    result = self._call(lambda port: writer.txPacket())
+    def send(port) -> int:
+      del port  # The writer's.
+      writer = self._goal_writer  # Under the bus lock: set while connected.
+      writer.clearParam()
+      for motor_id, tick in zip(ids, ticks.tolist(), strict=True):
+        raw = table.to_unsigned(tick, table.GOAL_POSITION.size)
+        writer.addParam(motor_id, list(raw.to_bytes(4, 'little')))
+      return writer.txPacket()
+
+    result = self._call(send)
     if result != sdk.COMM_SUCCESS:
       raise DynamixelError(
         f'sending goal positions failed: {self._packets.getTxRxResult(result)}',
@@ -531,43 +576,3 @@ class DynamixelClient(register_access.RegisterAccess):
     columns = [self._column[motor_id] for motor_id in ids]
     self._sent_goals[columns] = ticks
     self._goal_pending[columns] = True
-
-  def set_torque(self, motor_ids, enabled: bool) -> None:
-    """Turns the torque of `motor_ids` on or off, and checks it took.
-
-    Raises:
-      DynamixelError: naming motors that refuse (e.g. after a shutdown).
-      MotorFaultError: if a motor reports a hardware error.
-    """
-    self._check_connected()
-    failed = []
-    alerted = []
-    for motor_id in motor_ids:
-      for attempt in range(self._retries + 1):
-        result, error = self._call(
-          self._packets.write1ByteTxRx,
-          motor_id,
-          table.TORQUE_ENABLE.address,
-          int(enabled),
-        )
-        if result == sdk.COMM_SUCCESS and not error & ~table.ALERT_BIT:
-          if error & table.ALERT_BIT:
-            alerted.append(motor_id)
-          break
-        if attempt < self._retries:
-          time.sleep(_TORQUE_RETRY_INTERVAL_S)
-      else:
-        failed.append(motor_id)
-    if alerted and enabled:
-      self.raise_on_hardware_errors(alerted)
-    if failed:
-      raise DynamixelError(
-        f'motors {failed} did not accept torque {"on" if enabled else "off"}',
-        failed,
-      )
-    if enabled:
-      values = self.read_register(table.TORQUE_ENABLE, motor_ids)
-      refused = [i for i, value in values.items() if value != 1]
-      if refused:
-        self.raise_on_hardware_errors(refused)
-        raise DynamixelError(f'motors {refused} kept their torque off', refused)

@@ -6,6 +6,11 @@ goal positions, waits for the control tick, reads the motors back, writes
 their joint angles and velocities into `qpos`/`qvel`, advances `time` and
 runs `mj_forward`. Every observable, reward and safety counter of the task
 then works unchanged, from measured state.
+
+An error during a step or a reset releases the motors, and the physics then
+refuses to step until a reset has brought the robot back: the reset checks
+that every motor answers again and takes its goals (see
+`realize_initial_state`), then runs the reset procedure as usual.
 """
 
 import contextlib
@@ -16,6 +21,7 @@ import mujoco
 import numpy as np
 
 from robel_dm.hardware import clock as clock_lib
+from robel_dm.hardware import control_table as table
 from robel_dm.hardware import dynamixel, resets
 from robel_dm.hardware import robot as robot_lib
 
@@ -151,9 +157,19 @@ class HardwarePhysics(mjcf.Physics):
 
     Runs the reset procedure (see `resets`); auxiliary motors (the valve)
     are driven to their initial angle and then released for the episode.
+    After an error (the robot was released), the robot is first brought
+    back (see `_recover`). If anything fails, the motors are released
+    again and the physics keeps refusing to step.
+
+    Raises:
+      dynamixel.DynamixelError: naming the motors that failed; after an
+        error, its message says that the robot could not be brought back.
+      resets.ResetError: if the reset procedure failed.
     """
-    self._fault = RuntimeError('reset did not finish')
+    fault, self._fault = self._fault, RuntimeError('reset did not finish')
     try:
+      if fault is not None:
+        self._recover()
       # The bus first: every motor answers, none reports a hardware error.
       self._robot.check_health(force=True)
       desired = np.array(self._robot.positions)
@@ -181,12 +197,59 @@ class HardwarePhysics(mjcf.Physics):
     except BaseException as error:
       self._fault = error
       self._robot.release()
+      if fault is not None and isinstance(error, dynamixel.DynamixelError):
+        self._fault = _not_recovered(error)
+        raise self._fault from error
       raise
     self._fault = None
     self.data.time = 0.0
     self._pending_substeps = 0
     self._next_tick = self._clock.now() + self._period
     mujoco.mj_forward(self.model.ptr, self.data.ptr)
+
+  def _recover(self) -> None:
+    """Checks the bus after an error, before the reset procedure runs.
+
+    Every motor is released (one that was away when the error released the
+    robot may still hold its torque) and must answer a ping as the model it
+    was at connection. Then every motor is sent the goal it already holds
+    (torque is off: nothing moves) and the state is read back, which
+    confirms every goal to the client: a goal write that the failed step
+    lost must not fail the reset's reads (a client that counts lost goal
+    writes until a read finds the goal arrived would fail every read).
+
+    Raises:
+      dynamixel.MissingMotorError: naming the motors that do not answer.
+      dynamixel.DynamixelError: for a motor of another model, or goal
+        writes that are still lost.
+    """
+    robot, client = self._robot, self._robot.client
+    robot.release()
+    missing, models = [], client.models
+    for motor_id in client.motor_ids:
+      try:
+        model = client.ping(motor_id)
+      except dynamixel.MissingMotorError:
+        missing.append(motor_id)
+        continue
+      if model != models[motor_id]:
+        raise dynamixel.DynamixelError(
+          f'motor {motor_id} is now a model {model}, was a model '
+          f'{models[motor_id]}',
+          [motor_id],
+        )
+    if missing:
+      raise dynamixel.MissingMotorError(
+        f'motors {missing} do not answer a ping (no reply, or a corrupted '
+        'one): check their cables and power',
+        missing,
+      )
+    goals = client.sync_read_register(table.GOAL_POSITION)
+    ids = client.motor_ids
+    client.write_goal_positions(
+      [goals[i] * table.RADIANS_PER_TICK for i in ids], ids
+    )
+    robot.read()
 
   def _wait_for_tick(self) -> None:
     clock = self._clock
@@ -221,3 +284,15 @@ class HardwarePhysics(mjcf.Physics):
       self.data.qpos[qpos + 3 : qpos + 7] = quaternion
       self.data.qvel[dof : dof + 3] = velocity
       self.data.qvel[dof + 3 : dof + 6] = angular_velocity
+
+
+def _not_recovered(error: dynamixel.DynamixelError) -> dynamixel.DynamixelError:
+  """`error` again (same class, same motors), saying that the robot could
+  not be brought back after an earlier error."""
+  message = (
+    f'reset could not bring the robot back after an error: {error}; the '
+    'motors that answer are released (torque off)'
+  )
+  if isinstance(error, dynamixel.MotorFaultError):
+    return dynamixel.MotorFaultError(message, error.errors)
+  return type(error)(message, error.motor_ids)

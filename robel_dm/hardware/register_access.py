@@ -1,9 +1,18 @@
 """Register-level access of the Dynamixel client: any item of any motor.
 
 Diagnostics (`scan`), health checks and configuration read and write single
-control-table items; the control loop itself uses only the client's state
-read and goal write. `DynamixelClient` includes these methods.
+control-table items, and torque is switched here; the control loop itself
+uses only the client's state read and goal write. `DynamixelClient`
+includes these methods.
+
+Every reply is checked against what was asked (`packet_handler`): a late
+reply to an earlier packet, which the SDK would take for the current one's
+and decode into wrong numbers (or fail on with an IndexError), is dropped
+with whatever else waits in the port, and the read is made again; a motor
+that keeps answering so is named in a `DynamixelError`.
 """
+
+import time
 
 from robel_dm.hardware import control_table as table
 from robel_dm.hardware.dynamixel_errors import (
@@ -18,12 +27,102 @@ try:
 except ImportError:  # pragma: no cover - exercised without the extra
   sdk = None
 
+_TORQUE_RETRY_INTERVAL_S = 0.05
+# A release asks each motor to confirm its torque off for up to this long.
+RELEASE_CONFIRM_S = 0.5
+_RELEASE_RETRY_INTERVAL_S = 0.02
+# What the client's packet handler answers (beside the SDK's COMM_* results)
+# for a status packet of the wrong length for its instruction.
+COMM_WRONG_LENGTH = -3100
+# A status packet, unstuffed: header (4 bytes), ID, length (2), instruction,
+# error, parameters, CRC (2); the length counts instruction to CRC.
+_ID, _LENGTH, _INSTRUCTION, _PARAMETERS = 4, 5, 7, 8
+_STATUS_OVERHEAD = 4  # Instruction, error, CRC.
+_PING_REPLY_SIZE = 3  # Model number (2), firmware version.
+
+
+def _parameter_count(packet) -> int:
+  return packet[_LENGTH] + (packet[_LENGTH + 1] << 8) - _STATUS_OVERHEAD
+
+
+def _reply_size(txpacket) -> int | None:
+  """Parameter bytes of the reply an instruction packet asks for (None:
+  no reply, or not checked)."""
+  if txpacket[_ID] == sdk.BROADCAST_ID:
+    return None
+  instruction = txpacket[_INSTRUCTION]
+  if instruction == sdk.INST_READ:  # Parameters: address (2), length (2).
+    return txpacket[_PARAMETERS + 2] + (txpacket[_PARAMETERS + 3] << 8)
+  if instruction == sdk.INST_PING:
+    return _PING_REPLY_SIZE
+  if instruction in (
+    sdk.INST_WRITE,
+    sdk.INST_REG_WRITE,
+    sdk.INST_REBOOT,
+    sdk.INST_CLEAR,
+    sdk.INST_FACTORY_RESET,
+  ):
+    return 0
+  return None
+
+
+def packet_handler():
+  """The SDK's Protocol 2.0 packet handler, checking every reply's length.
+
+  A read's reply must carry exactly the bytes asked for (in a sync read,
+  each motor's), a ping's three, a write's none; a refusal (an error
+  status) may carry none. Any other reply, most often a late one to an
+  earlier packet, drains the port, and the transaction answers
+  `COMM_WRONG_LENGTH`; the handler's `bad_reply` then holds (motor ID,
+  parameter bytes received, bytes expected).
+  """
+
+  class PacketHandler(sdk.Protocol2PacketHandler):
+    bad_reply: tuple[int, int, int] | None = None
+    _received = None  # The status packet read last.
+
+    def rxPacket(self, port, fast_option):  # noqa: N802 (SDK method name)
+      packet, result = super().rxPacket(port, fast_option)
+      self._received = packet
+      return packet, result
+
+    def txRxPacket(self, port, txpacket):  # noqa: N802 (SDK method name)
+      packet, result, error = super().txRxPacket(port, txpacket)
+      expected = _reply_size(txpacket)
+      if result == sdk.COMM_SUCCESS and expected is not None:
+        received = _parameter_count(packet)
+        refusal = received == 0 and error & ~table.ALERT_BIT
+        if received != expected and not refusal:
+          result = self._wrong_length(port, packet, expected)
+      return packet, result, error
+
+    def readRx(self, port, dxl_id, length):  # noqa: N802 (a sync read's)
+      data, result, error = super().readRx(port, dxl_id, length)
+      packet = self._received
+      if result == sdk.COMM_SUCCESS and _parameter_count(packet) != length:
+        return [], self._wrong_length(port, packet, length), error
+      return data, result, error
+
+    def getTxRxResult(self, result):  # noqa: N802 (SDK method name)
+      if result == COMM_WRONG_LENGTH:
+        return '[TxRxResult] Status packet of the wrong length!'
+      return super().getTxRxResult(result)
+
+    def _wrong_length(self, port, packet, expected: int) -> int:
+      port.clearPort()
+      self.bad_reply = (packet[_ID], _parameter_count(packet), expected)
+      return COMM_WRONG_LENGTH
+
+  return PacketHandler()
+
 
 class RegisterAccess:
-  """Reads and writes of single control-table items (a client's part).
+  """Reads and writes of single control-table items, and torque switching
+  (a client's part).
 
-  Relies on the client's connection: `_call`, `_packets`, `_port`, `_ids`,
-  `_retries`, `_check_connected` and `_silent_motors`.
+  Relies on the client's connection: `_call`, `_packets` (a
+  `packet_handler`), `_port`, `_ids`, `_retries`, `_device_path`,
+  `_register_readers`, `_check_connected` and `_silent_motors`.
   """
 
   def broadcast_ping(self) -> dict[int, tuple[int, int]]:
@@ -60,6 +159,8 @@ class RegisterAccess:
 
     Raises:
       MissingMotorError: naming motors that do not answer.
+      DynamixelError: naming a motor that refuses the read, or whose replies
+        keep having the wrong length.
     """
     self._check_connected()
     read = {
@@ -70,17 +171,23 @@ class RegisterAccess:
     values, silent = {}, []
     for motor_id in self._ids if motor_ids is None else motor_ids:
       for _ in range(self._retries + 1):
-        value, result, _ = self._call(read, motor_id, item.address)
+        value, result, error = self._call(read, motor_id, item.address)
         if result == sdk.COMM_SUCCESS:
-          values[motor_id] = (
-            table.to_signed(value, item.size) if item.signed else value
-          )
           break
       else:
+        if result == COMM_WRONG_LENGTH:
+          raise self._wrong_replies(item.address)
         silent.append(motor_id)
+        continue
+      if error & ~table.ALERT_BIT:
+        raise self._refused(motor_id, item.address, error)
+      values[motor_id] = (
+        table.to_signed(value, item.size) if item.signed else value
+      )
     if silent:
       raise MissingMotorError(
-        f'motors {silent} did not answer reading address {item.address}',
+        f'motors {silent} did not answer reading address {item.address} '
+        f'on {self._device_path}',
         silent,
       )
     return values
@@ -90,7 +197,8 @@ class RegisterAccess:
 
     Raises:
       MissingMotorError: if the motor does not answer.
-      DynamixelError: if it refuses the read (e.g. an Access error).
+      DynamixelError: if it refuses the read (e.g. an Access error), or its
+        replies keep having the wrong length.
     """
     self._check_connected()
     for _ in range(self._retries + 1):
@@ -100,15 +208,14 @@ class RegisterAccess:
       if result != sdk.COMM_SUCCESS:
         continue
       if error & ~table.ALERT_BIT:
-        raise DynamixelError(
-          f'motor {motor_id} refused reading {length} bytes at address '
-          f'{address}: {self._packets.getRxPacketError(error)}',
-          [motor_id],
-        )
+        raise self._refused(motor_id, address, error)
       if len(data) == length:
         return bytes(data)
+    if result == COMM_WRONG_LENGTH:
+      raise self._wrong_replies(address)
     raise MissingMotorError(
-      f'motor {motor_id} did not answer reading address {address}',
+      f'motor {motor_id} did not answer reading address {address} on '
+      f'{self._device_path}',
       [motor_id],
     )
 
@@ -147,29 +254,25 @@ class RegisterAccess:
 
     Raises:
       MissingMotorError: naming motors that do not answer.
-      DynamixelError: if the transaction keeps failing.
+      DynamixelError: naming a motor whose replies keep having the wrong
+        length, or if the transaction keeps failing.
     """
     self._check_connected()
-    reader = self._register_readers.get(item.address)
-    if reader is None:
-      reader = sdk.GroupSyncRead(
-        self._port, self._packets, item.address, item.size
-      )
-      for motor_id in self._ids:
-        reader.addParam(motor_id)
-      self._register_readers[item.address] = reader
+    key = (item.address, item.size)
     for _ in range(self._retries + 1):
-      result = self._call(lambda port: reader.txRxPacket())
-      if result == sdk.COMM_SUCCESS and all(
-        reader.isAvailable(i, item.address, item.size) for i in self._ids
-      ):
+      reader, result = self._call(lambda port: self._sync_read(port, key))
+      if result == sdk.COMM_SUCCESS:
         break
     else:
+      if result == COMM_WRONG_LENGTH:
+        raise self._wrong_replies(item.address)
       silent = self._silent_motors(self._ids)
       if silent:
-        raise MissingMotorError(f'motors {silent} stopped answering', silent)
+        raise MissingMotorError(
+          f'motors {silent} stopped answering on {self._device_path}', silent
+        )
       raise DynamixelError(
-        f'reading address {item.address} failed: '
+        f'reading address {item.address} on {self._device_path} failed: '
         f'{self._packets.getTxRxResult(result)}',
         self._ids,
       )
@@ -177,6 +280,88 @@ class RegisterAccess:
     if item.signed:
       values = {i: table.to_signed(v, item.size) for i, v in values.items()}
     return values
+
+  def _sync_read(self, port, key: tuple[int, int]):
+    """(reader, SDK result) of one sync read of (address, size)."""
+    reader = self._register_readers.get(key)
+    if reader is None:
+      reader = sdk.GroupSyncRead(port, self._packets, *key)
+      for motor_id in self._ids:
+        reader.addParam(motor_id)
+      self._register_readers[key] = reader
+    return reader, reader.txRxPacket()
+
+  def _refused(self, motor_id: int, address: int, error: int):
+    return DynamixelError(
+      f'motor {motor_id} refused reading address {address} on '
+      f'{self._device_path}: {self._packets.getRxPacketError(error)}',
+      [motor_id],
+    )
+
+  def _wrong_replies(self, address: int) -> DynamixelError:
+    """The error naming the motor whose replies kept the wrong length."""
+    motor_id, received, expected = self._packets.bad_reply
+    return DynamixelError(
+      f'motor {motor_id} answered reading address {address} on '
+      f'{self._device_path} with {received} bytes instead of {expected}, '
+      f'{self._retries + 1} times in a row, the port drained each time '
+      '(late replies to earlier packets?)',
+      [motor_id],
+    )
+
+  def set_torque(self, motor_ids, enabled: bool) -> None:
+    """Turns the torque of `motor_ids` on or off, and checks it took.
+
+    Raises:
+      DynamixelError: naming motors that refuse (e.g. after a shutdown).
+      MotorFaultError: if a motor reports a hardware error.
+    """
+    self._check_connected()
+    failed = []
+    alerted = []
+    for motor_id in motor_ids:
+      for attempt in range(self._retries + 1):
+        result, error = self._call(
+          self._packets.write1ByteTxRx,
+          motor_id,
+          table.TORQUE_ENABLE.address,
+          int(enabled),
+        )
+        if result == sdk.COMM_SUCCESS and not error & ~table.ALERT_BIT:
+          if error & table.ALERT_BIT:
+            alerted.append(motor_id)
+          break
+        if attempt < self._retries:
+          time.sleep(_TORQUE_RETRY_INTERVAL_S)
+      else:
+        failed.append(motor_id)
+    if alerted and enabled:
+      self.raise_on_hardware_errors(alerted)
+    if failed:
+      raise DynamixelError(
+        f'motors {failed} did not accept torque {"on" if enabled else "off"}',
+        failed,
+      )
+    if enabled:
+      values = self.read_register(table.TORQUE_ENABLE, motor_ids)
+      refused = [i for i, value in values.items() if value != 1]
+      if refused:
+        self.raise_on_hardware_errors(refused)
+        raise DynamixelError(f'motors {refused} kept their torque off', refused)
+
+  def confirm_torque_off(self, motor_id: int) -> bool:
+    """Turns a motor's torque off; whether it confirmed, retried for up to
+    `RELEASE_CONFIRM_S` (a motor may miss a few packets, then answer)."""
+    deadline = time.monotonic() + RELEASE_CONFIRM_S
+    while True:
+      result, error = self._call(
+        self._packets.write1ByteTxRx, motor_id, table.TORQUE_ENABLE.address, 0
+      )
+      if result == sdk.COMM_SUCCESS and not error & ~table.ALERT_BIT:
+        return True
+      if time.monotonic() >= deadline:
+        return False
+      time.sleep(_RELEASE_RETRY_INTERVAL_S)
 
   def hardware_errors(self, motor_ids=None) -> dict[int, int]:
     """Hardware Error Status of the motors that have one (bits, see table)."""
