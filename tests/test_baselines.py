@@ -54,7 +54,7 @@ def sandbox(tmp_path, monkeypatch):
   plan['valve4'], plan['every_agent'] = [], ['dclaw/pose_random']
   monkeypatch.setattr(baselines, 'PLAN', plan)
   for name, path in (('RUNS_DIR', 'runs'), ('RESULTS', 'docs/b.json'),
-                     ('DOC', 'docs/b.md'), ('FIGURES', 'docs/figures'),
+                     ('DOC', 'docs/table.txt'), ('FIGURES', 'docs/figures'),
                      ('POLICIES', 'policies')):  # fmt: skip
     monkeypatch.setattr(baselines, name, tmp_path / path)
   (tmp_path / 'policies').mkdir()
