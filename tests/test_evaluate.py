@@ -7,6 +7,7 @@ import subprocess
 import sys
 import time
 
+import child_signals
 import numpy as np
 import pytest
 
@@ -119,7 +120,8 @@ def test_parse_task_kwargs_rejects_malformed_text(text):
 def _run_cli(*flags, cwd):
   env = dict(os.environ, MUJOCO_GL='egl')
   return subprocess.run(
-    [sys.executable, '-m', 'robel_dm.evaluate', *flags],
+    preexec_fn=child_signals.default,
+    args=[sys.executable, '-m', 'robel_dm.evaluate', *flags],
     capture_output=True, text=True, cwd=cwd, env=env,
   )  # fmt: skip
 
@@ -216,7 +218,8 @@ def test_cli_checks_the_output_path_before_the_first_episode(tmp_path):
 def test_ctrl_c_mid_sweep_keeps_every_finished_episode(tmp_path):
   output = tmp_path / 'sweep.json'
   process = subprocess.Popen(
-    [sys.executable, '-m', 'robel_dm.evaluate', '--domain=dclaw',
+    preexec_fn=child_signals.default,
+    args=[sys.executable, '-m', 'robel_dm.evaluate', '--domain=dclaw',
      '--task=all', '--episodes=20', '--policy=zero', f'--output={output}'],
     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     env=dict(os.environ, MUJOCO_GL='egl'),

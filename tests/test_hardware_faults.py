@@ -16,6 +16,7 @@ import subprocess
 import sys
 import textwrap
 
+import child_signals
 import numpy as np
 import pytest
 import test_robot_safety as safety
@@ -140,7 +141,8 @@ def test_connecting_from_a_worker_thread_warns_when_signals_cannot_release(
     worker.join()
   """)
   child = subprocess.Popen(
-    [sys.executable, '-c', code],
+    preexec_fn=child_signals.default,
+    args=[sys.executable, '-c', code],
     stdout=subprocess.PIPE,
     stderr=subprocess.PIPE,
     text=True,
@@ -166,7 +168,11 @@ def test_without_a_robot_an_exit_signal_acts_as_its_default(signum):
     time.sleep(30)
   """)
   child = subprocess.run(
-    [sys.executable, '-c', code], capture_output=True, text=True, timeout=60
+    preexec_fn=child_signals.default,
+    args=[sys.executable, '-c', code],
+    capture_output=True,
+    text=True,
+    timeout=60,
   )
   assert child.returncode == -signum, child.stderr  # Killed by the signal.
 

@@ -15,6 +15,7 @@ import sys
 import textwrap
 import time
 
+import child_signals
 import numpy as np
 import pytest
 
@@ -115,7 +116,8 @@ def _wait_for_line(stream, timeout: float) -> str:
 def standalone_bus():
   """A D'Claw's motors on a virtual bus in its own process; its path."""
   process = subprocess.Popen(
-    [sys.executable, '-m', 'robel_dm.hardware.virtual', '--robot=dclaw',
+    preexec_fn=child_signals.default,
+    args=[sys.executable, '-m', 'robel_dm.hardware.virtual', '--robot=dclaw',
      '--driver=ideal'],
     stdout=subprocess.PIPE,
     stderr=subprocess.PIPE,
@@ -159,7 +161,8 @@ def _child(device_path: str, body: str) -> subprocess.Popen:
     f'DEVICE = {device_path!r}\n' + textwrap.dedent(body)
   )
   return subprocess.Popen(
-    [sys.executable, '-c', code],
+    preexec_fn=child_signals.default,
+    args=[sys.executable, '-c', code],
     stdout=subprocess.PIPE,
     stderr=subprocess.PIPE,
     text=True,
@@ -443,7 +446,8 @@ def test_a_second_process_on_the_same_port_is_refused(standalone_bus):
 def test_a_vanished_port_is_named_and_the_command_line_says_so(standalone_bus):
   device_path, bus_process = standalone_bus
   evaluation = subprocess.Popen(
-    [sys.executable, '-m', 'robel_dm.evaluate', '--domain=dclaw',
+    preexec_fn=child_signals.default,
+    args=[sys.executable, '-m', 'robel_dm.evaluate', '--domain=dclaw',
      '--task=pose_fixed', '--episodes=1000', f'--device_path={device_path}',
      '--reset=move'],
     stdout=subprocess.PIPE,
