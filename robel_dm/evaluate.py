@@ -479,7 +479,7 @@ def main(argv):
     tasks = select_tasks(FLAGS.domain, FLAGS.task)
     cli_checks.check_output(FLAGS.output)
     checked = {  # Every task's policy file, before any runs.
-      task: policies.check_file(
+      (domain, task): policies.check_file(
         FLAGS.policy, domain, task, task_kwargs, FLAGS.allow_other_variant
       )
       for domain, task in tasks
@@ -514,7 +514,8 @@ def main(argv):
         domain,
         task,
         FLAGS.episodes,
-        policy=(FLAGS.allow_other_variant and checked[task]) or FLAGS.policy,
+        policy=(FLAGS.allow_other_variant and checked[domain, task])
+        or FLAGS.policy,
         seed=FLAGS.seed,
         task_kwargs=task_kwargs,
         device_path=FLAGS.device_path,

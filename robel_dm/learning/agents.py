@@ -22,6 +22,8 @@ import dataclasses
 import os
 from typing import Any
 
+import numpy as np
+
 from robel_dm import policies
 
 # One CPU thread per run (XLA reads this when JAX starts): two runs on two
@@ -219,8 +221,8 @@ def numpy_policy(model, metadata: dict[str, Any]) -> policies.NumpyPolicy:
     # The hidden layers, then the mean; the last Dense is the log-std.
     layers = [params[name] for name in dense[:-1]]
     return policies.NumpyPolicy(
-      [_array(layer['kernel']).T for layer in layers],
-      [_array(layer['bias']) for layer in layers],
+      [np.asarray(layer['kernel']).T for layer in layers],
+      [np.asarray(layer['bias']) for layer in layers],
       'relu',
       'tanh',
       metadata,
@@ -248,9 +250,3 @@ def numpy_policy(model, metadata: dict[str, Any]) -> policies.NumpyPolicy:
     output,
     metadata,
   )
-
-
-def _array(value):
-  import numpy as np  # noqa: PLC0415
-
-  return np.asarray(value)

@@ -528,22 +528,5 @@ def _add_demonstrations(model, data: demos.Transitions) -> None:
   buffer.pos = n
 
 
-def read_metadata(path: pathlib.Path) -> dict[str, Any]:
-  """The metadata saved beside a checkpoint (task, keys, algorithm)."""
-  file = pathlib.Path(path).with_name(METADATA)
-  if not file.is_file():
-    raise policies.PolicyError(
-      f'{file} is missing: the checkpoint does not say what it was trained on'
-    )
-  return json.loads(file.read_text())
-
-
-def load_checkpoint_policy(path: pathlib.Path) -> policies.NumpyPolicy:
-  """The deterministic actor of a `checkpoint.zip` as a NumpyPolicy."""
-  metadata = read_metadata(path)
-  agent = agents.get(metadata.get('algo', 'sac_sb3'))
-  return agents.numpy_policy(agents.load(agent, path, None), metadata)
-
-
 def parse_hidden(values: Sequence[str]) -> tuple[int, ...]:
   return tuple(int(value) for value in values if value)
