@@ -2,6 +2,7 @@
 
 import copy
 import json
+import shutil
 
 import pytest
 
@@ -39,6 +40,14 @@ def test_the_plan_covers_every_task_seed_and_kind_of_agent():
         }  # fmt: skip
   names = [run.name for run in table]
   assert len(names) == len(set(names))
+  # Fixed tasks on every seed come first, then the Random ones.
+  first = {(r.domain, r.task) for r in table[: 3 * len(suite.FIXED)]}
+  assert first == set(suite.FIXED)
+
+
+def test_the_table_stops_a_run_once_it_is_solved():
+  config = baselines.Run('dclaw', 'turn_fixed', 'sac', 1).config()
+  assert config.stop_at_success == baselines.PLAN['solved']
 
 
 @pytest.fixture
@@ -110,6 +119,17 @@ def test_the_report_is_derived_from_the_records(sandbox):
   assert '| dclaw/pose_random | sac | 0 | 16 |' in text
   assert '1 (deterministic)' in text
   assert (baselines.FIGURES / 'dclaw_pose_random.png').is_file()
+
+
+def test_a_recorded_run_is_not_trained_again_without_its_folder(sandbox):
+  baselines.train_queue(0, 1, 'dclaw_pose_fixed_sac_seed0', None)
+  rows = json.loads(baselines.RESULTS.read_text())
+  shutil.rmtree(baselines.RUNS_DIR)
+  run = baselines.Run('dclaw', 'pose_fixed', 'sac', 0)
+  assert baselines.recorded(run) and not baselines.finished(run)
+  baselines.train_queue(0, 1, 'dclaw_pose_fixed_sac_seed0', None)
+  assert not run.directory.exists()
+  assert json.loads(baselines.RESULTS.read_text()) == rows
 
 
 def test_a_queue_takes_its_share_and_bad_selections_are_refused(sandbox):

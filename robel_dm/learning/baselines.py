@@ -95,19 +95,30 @@ class Run:
       eval_episodes=1 if self.fixed else PLAN['eval_episodes_random'],
       demos=demos,
       demo_episodes=PLAN['demo_episodes'],
+      stop_at_success=PLAN['solved'] if PLAN['stop_when_solved'] else None,
     )
 
 
 def runs() -> list[Run]:
   """Every run of the table, in the order they are worth running: the
-  default agent on every task first, then the other agents."""
+  default agent on the Fixed tasks (every seed), then on the Random ones,
+  then on RandomDynamics and the 4-prong valve, then the other agents."""
+  tiers = {'fixed': [], 'random': [], 'other': []}
+  for key in PLAN['tasks']:
+    domain, task = key.split('/')
+    if (domain, task) in suite.FIXED:
+      tiers['fixed'].append((domain, task, False))
+    elif (domain, task) in suite.RANDOM:
+      tiers['random'].append((domain, task, False))
+    else:
+      tiers['other'].append((domain, task, False))
+    if key in PLAN['valve4']:
+      tiers['other'].append((domain, task, True))
   table = []
-  for seed in PLAN['seeds']:
-    for key in PLAN['tasks']:
-      domain, task = key.split('/')
-      table.append(Run(domain, task, PLAN['default_agent'], seed))
-      if key in PLAN['valve4']:
-        table.append(Run(domain, task, PLAN['default_agent'], seed, True))
+  for tier in tiers.values():
+    for seed in PLAN['seeds']:
+      for domain, task, valve4 in tier:
+        table.append(Run(domain, task, PLAN['default_agent'], seed, valve4))
   for seed in PLAN['seeds']:
     for key in PLAN['every_agent']:
       domain, task = key.split('/')
@@ -136,6 +147,26 @@ def _log(run: Run) -> list[dict]:
 
 def finished(run: Run) -> bool:
   return (run.directory / FINAL).is_file()
+
+
+def _key(row: dict) -> tuple:
+  return (
+    row['domain'],
+    row['task'],
+    json.dumps(row['task_kwargs'], sort_keys=True),
+    row['algo'],
+    row['seed'],
+  )
+
+
+def recorded(run: Run) -> bool:
+  """Whether docs/baselines.json holds the run (its folder may be gone:
+  run folders are not committed, the records are)."""
+  if not RESULTS.is_file():
+    return False
+  rows = json.loads(RESULTS.read_text())
+  mine = _key(dataclasses.asdict(run) | {'task_kwargs': run.task_kwargs})
+  return any(_key(row) == mine for row in rows)
 
 
 def demonstrations(run: Run, log=print) -> str | None:
@@ -292,19 +323,9 @@ def merge_results(records: list[dict]) -> None:
 
 def _merge(records: list[dict]) -> None:
   existing = json.loads(RESULTS.read_text()) if RESULTS.is_file() else []
-
-  def key(row):
-    return (
-      row['domain'],
-      row['task'],
-      json.dumps(row['task_kwargs']),
-      row['algo'],
-      row['seed'],
-    )
-
-  merged = {key(row): row for row in existing}
-  merged.update({key(row): row for row in records})
-  rows = sorted(merged.values(), key=key)
+  merged = {_key(row): row for row in existing}
+  merged.update({_key(row): row for row in records})
+  rows = sorted(merged.values(), key=_key)
   temporary = RESULTS.with_suffix('.partial')
   temporary.write_text(json.dumps(rows, indent=1) + '\n')
   temporary.replace(RESULTS)
@@ -322,6 +343,8 @@ def train_queue(
     if deadline and time.monotonic() > deadline:
       print('time budget used up; the rest resumes on the next call')
       return
+    if recorded(run) and not finished(run):
+      continue
     result = train_run(run, log=lambda line: print(line, flush=True))
     if result is None:
       waiting.append(run)
@@ -378,7 +401,8 @@ def main(argv: list[str] | None = None) -> int:
   try:
     if args.command == 'list':
       for run in runs():
-        print(f'{run.name:50s} {"done" if finished(run) else ""}')
+        done = finished(run) or recorded(run)
+        print(f'{run.name:50s} {"done" if done else ""}')
     elif args.command == 'report':
       from robel_dm.learning import report  # noqa: PLC0415
 
