@@ -3,6 +3,9 @@ r"""Trains an agent on a robel_dm task (see `robel_dm.learning.train`).
     python -m robel_dm.train --domain=dclaw --task=pose_fixed --steps=30000 \
         --seed=0 --output_dir=runs/pose
     python -m robel_dm.train --algo=bc --demos=runs/demos ...
+    # On a robot (or a virtual bus), in real time:
+    python -m robel_dm.train --domain=dclaw --task=pose_fixed \
+        --device_path=/dev/ttyUSB0 --hours=2 --output_dir=runs/claw
 
 `--algo` is one of `robel_dm.learning.agents.AGENTS` (SAC on JAX by
 default). Needs the `learn` extra.
@@ -49,6 +52,57 @@ def _define_flags() -> None:
     None,
     'End early once an evaluation reaches this success rate.',
   )
+  flags.DEFINE_list(
+    'from_recording',
+    [],
+    'Recordings whose every transition starts the replay buffer (or joins '
+    "bc's data).",
+  )
+  # Learning on a robot (robel_dm.learning.robot).
+  flags.DEFINE_string(
+    'device_path',
+    None,
+    "Learn on a robot: its Dynamixel bus (a virtual bus's pty), or "
+    "'virtual' for an in-process simulated bus.",
+  )
+  flags.DEFINE_string('robot_config', None, 'With --device_path: robot file.')
+  flags.DEFINE_enum(
+    'reset',
+    None,
+    ['scripted', 'move', 'manual'],
+    "With --device_path: the reset procedure (default: the robot's).",
+  )
+  flags.DEFINE_enum(
+    'guide', None, ['show', 'interactive'], 'With --device_path: guide motor.'
+  )
+  flags.DEFINE_string(
+    'tracker', None, "With --device_path: the D'Kitty's tracker spec."
+  )
+  flags.DEFINE_string(
+    'dynamics', None, 'With --device_path=virtual: calibration file.'
+  )
+  flags.DEFINE_float('hours', None, 'With --device_path: wall-clock budget.')
+  flags.DEFINE_integer(
+    'max_violations',
+    None,
+    'With --device_path: end an episode at this many safety violations.',
+  )
+  flags.DEFINE_integer(
+    'reset_attempts',
+    3,
+    'With --device_path: failed resets in a row that stop the run.',
+  )
+  flags.DEFINE_float(
+    'updates_per_step',
+    1.0,
+    'With --device_path: gradient updates per robot step, at most.',
+  )
+
+
+# Flags that only mean something on a robot.
+_ROBOT_FLAGS = ('robot_config', 'reset', 'guide', 'tracker', 'dynamics',
+                'hours', 'max_violations', 'reset_attempts',
+                'updates_per_step')  # fmt: skip
 
 
 FLAGS = flags.FLAGS
@@ -80,13 +134,26 @@ def main(argv):
       demos=tuple(FLAGS.demos),
       demo_episodes=FLAGS.demo_episodes,
       stop_at_success=FLAGS.stop_at_success,
+      from_recording=tuple(FLAGS.from_recording),
     )
-    learning.train(
-      config,
-      FLAGS.output_dir,
-      resume=FLAGS.resume,
-      log=lambda line: print(line, flush=True),
-    )
+    log = lambda line: print(line, flush=True)  # noqa: E731
+    if FLAGS.device_path:
+      from robel_dm.learning import robot  # noqa: PLC0415
+
+      options = robot.RobotOptions(
+        device_path=FLAGS.device_path,
+        **{name: FLAGS[name].value for name in _ROBOT_FLAGS},
+      )
+      robot.train_on_robot(
+        config, options, FLAGS.output_dir, resume=FLAGS.resume, log=log
+      )
+    else:
+      given = [name for name in _ROBOT_FLAGS if FLAGS[name].present]
+      if given:
+        raise ValueError(
+          f'--{given[0]} needs --device_path (it is about a robot)'
+        )
+      learning.train(config, FLAGS.output_dir, resume=FLAGS.resume, log=log)
   except ImportError as error:
     print(
       f'error: training needs the learn extra '
@@ -98,6 +165,12 @@ def main(argv):
   except (ValueError, RuntimeError) as error:
     print(f'error: {error}', file=sys.stderr)
     return 2
+  except KeyboardInterrupt:
+    print(
+      'interrupted (torque off); --resume continues from the last save',
+      file=sys.stderr,
+    )
+    return 130
   return 0
 
 

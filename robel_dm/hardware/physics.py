@@ -24,10 +24,10 @@ from robel_dm.hardware import clock as clock_lib
 from robel_dm.hardware import control_table as table
 from robel_dm.hardware import dynamixel, resets
 from robel_dm.hardware import robot as robot_lib
+from robel_dm.hardware import timing as timing_lib
 
-# A control step later than this past its tick is logged, s.
-_OVERRUN_TOLERANCE = 0.005
-_OVERRUN_LOG_INTERVAL = 1.0  # s
+# Late control steps are logged at most this often, s (all are counted).
+_OVERRUN_LOG_INTERVAL = 1.0
 
 
 class HardwarePhysics(mjcf.Physics):
@@ -71,6 +71,8 @@ class HardwarePhysics(mjcf.Physics):
     self._reset = reset or resets.MoveReset()
     self._tracker = tracker
     self._period = control_timestep
+    # The achieved period and late steps of every control step.
+    self.timing = timing_lib.ControlTiming(control_timestep)
     self._substeps = max(1, round(control_timestep / self.model.opt.timestep))
     self._pending_substeps = 0
     # Auxiliary motors with a model joint (the valve) write qpos/qvel like
@@ -205,6 +207,7 @@ class HardwarePhysics(mjcf.Physics):
     self.data.time = 0.0
     self._pending_substeps = 0
     self._next_tick = self._clock.now() + self._period
+    self.timing.restart()
     mujoco.mj_forward(self.model.ptr, self.data.ptr)
 
   def _recover(self) -> None:
@@ -257,12 +260,15 @@ class HardwarePhysics(mjcf.Physics):
     if self._next_tick is None:
       self._next_tick = now + self._period
     late = now - self._next_tick
-    if late > _OVERRUN_TOLERANCE and now - self._last_overrun_log > (
-      _OVERRUN_LOG_INTERVAL
-    ):
-      logging.warning('control step %.1f ms late', late * 1e3)
-      self._last_overrun_log = now
     clock.sleep_until(self._next_tick)
+    is_late = self.timing.record(late, clock.now())
+    if is_late and now - self._last_overrun_log > _OVERRUN_LOG_INTERVAL:
+      logging.warning(
+        'control step %.1f ms late (%d late so far)',
+        late * 1e3,
+        self.timing.late_steps,
+      )
+      self._last_overrun_log = now
     # After an overrun, keep the period from now rather than bursting.
     self._next_tick = max(self._next_tick, now) + self._period
 

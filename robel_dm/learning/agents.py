@@ -209,20 +209,28 @@ def load(agent: Agent, path, env):
   return _library_class(agent.name).load(str(path), env=env, device='cpu')
 
 
+def sac_actor_layers(model) -> list[tuple[np.ndarray, np.ndarray]]:
+  """An sbx SAC actor's dense layers as (weight (out, in), bias) arrays:
+  the hidden layers, then the mean, then the log-std."""
+  params = model.policy.actor_state.params['params']
+  dense = sorted(
+    (name for name in params if name.startswith('Dense_')),
+    key=lambda name: int(name.split('_')[1]),
+  )
+  return [
+    (np.asarray(params[name]['kernel']).T, np.asarray(params[name]['bias']))
+    for name in dense
+  ]
+
+
 def numpy_policy(model, metadata: dict[str, Any]) -> policies.NumpyPolicy:
   """The deterministic actor of a trained model, for numpy."""
   policy = model.policy
   if hasattr(policy, 'actor_state'):  # sbx SAC: tanh of the mean.
-    params = policy.actor_state.params['params']
-    dense = sorted(
-      (name for name in params if name.startswith('Dense_')),
-      key=lambda name: int(name.split('_')[1]),
-    )
-    # The hidden layers, then the mean; the last Dense is the log-std.
-    layers = [params[name] for name in dense[:-1]]
+    layers = sac_actor_layers(model)[:-1]  # Without the log-std.
     return policies.NumpyPolicy(
-      [np.asarray(layer['kernel']).T for layer in layers],
-      [np.asarray(layer['bias']) for layer in layers],
+      [weight for weight, _ in layers],
+      [bias for _, bias in layers],
       'relu',
       'tanh',
       metadata,

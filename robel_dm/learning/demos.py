@@ -38,6 +38,16 @@ class Transitions:
     return len(self.actions)
 
 
+def concatenate(parts: list[Transitions]) -> Transitions:
+  """One set of transitions from several, in order."""
+  fields = ('observations', 'actions', 'rewards', 'next_observations',
+            'terminals')  # fmt: skip
+  return Transitions(
+    *(np.concatenate([getattr(part, f) for part in parts]) for f in fields),
+    episodes=sum(part.episodes for part in parts),
+  )
+
+
 class DemoError(ValueError):
   """A demonstration set that cannot be used."""
 
@@ -49,6 +59,7 @@ def load(
   observation_keys: tuple[str, ...],
   task_kwargs: dict | None = None,
   episodes: int | None = None,
+  complete_only: bool = True,
 ) -> Transitions:
   """The complete episodes of one or more recordings of `domain/task`.
 
@@ -59,6 +70,8 @@ def load(
     observation_keys: the agent vector's keys, in order.
     task_kwargs: the task's arguments (the valve must match).
     episodes: use the first this many complete episodes (all if None).
+    complete_only: False also takes the steps of episodes a fault or an
+      interruption ended (their last transition is not terminal).
 
   Raises:
     DemoError: a directory is not a recording of this task, holds too few
@@ -84,7 +97,7 @@ def load(
         raise DemoError(
           f'demonstrations in {directory} use valve {valve or "valve3"}'
         )
-      if meta.get('complete') and len(episode) > 1:
+      if (meta.get('complete') or not complete_only) and len(episode) > 1:
         chosen.append(episode)
   if episodes is not None:
     if len(chosen) < episodes:
@@ -93,7 +106,11 @@ def load(
       )
     chosen = chosen[:episodes]
   if not chosen:
-    raise DemoError('no complete demonstration episode')
+    raise DemoError(
+      'no complete demonstration episode'
+      if complete_only
+      else 'no recorded transition'
+    )
   parts = [_transitions(episode, observation_keys) for episode in chosen]
   return Transitions(
     *(np.concatenate(arrays) for arrays in zip(*parts, strict=True)),

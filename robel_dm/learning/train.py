@@ -71,6 +71,9 @@ class RunConfig:
     demo_episodes: how many demonstration episodes to use.
     stop_at_success: end the run early once an evaluation's success rate
       reaches this (never if None).
+    from_recording: recordings (of this task, simulated or on a robot,
+      complete episodes or not) whose every transition starts the replay
+      buffer of an off-policy agent, or joins behaviour cloning's data.
   """
 
   domain: str
@@ -87,6 +90,7 @@ class RunConfig:
   demos: tuple[str, ...] = ()
   demo_episodes: int = 20
   stop_at_success: float | None = None
+  from_recording: tuple[str, ...] = ()
 
   @property
   def agent(self) -> agents.Agent:
@@ -108,8 +112,13 @@ class RunConfig:
       )
     if any(size < 1 for size in self.layers):
       raise ValueError(f'hidden sizes must be >= 1, got {self.hidden}')
-    if agent.needs_demos and not self.demos:
+    if agent.needs_demos and not (self.demos or self.from_recording):
       raise ValueError(f'--algo={self.algo} learns from --demos=DIR')
+    if self.from_recording and agent.kind == agents.ON_POLICY:
+      raise ValueError(
+        f'--algo={self.algo} learns on-policy: it cannot start from '
+        '--from_recording'
+      )
     if self.demos and not agent.needs_demos:
       raise ValueError(f'--algo={self.algo} does not use --demos')
     if self.demo_episodes < 1:
@@ -119,6 +128,7 @@ class RunConfig:
     data = dataclasses.asdict(self)
     data['hidden'] = list(self.layers)
     data['demos'] = list(self.demos)
+    data['from_recording'] = list(self.from_recording)
     # What the agent was built with: a resume under other defaults (a newer
     # robel_dm) would otherwise go on with other settings unnoticed.
     data['hyperparameters'] = dict(self.agent.hyperparameters)
@@ -130,6 +140,7 @@ class RunConfig:
     data = {k: v for k, v in data.items() if k in fields}
     data['hidden'] = tuple(data.get('hidden', ()))
     data['demos'] = tuple(data.get('demos', ()))
+    data['from_recording'] = tuple(data.get('from_recording', ()))
     return cls(**data)
 
 
@@ -217,7 +228,7 @@ def _better(row: dict, best: dict | None) -> bool:
   )
 
 
-class _Run:
+class Run:
   """The bookkeeping of one run directory: log, clocks, best policy."""
 
   def __init__(self, output: pathlib.Path, config: RunConfig, log):
@@ -249,13 +260,23 @@ class _Run:
     self._wall -= time.perf_counter()
     self._cpu -= time.process_time()
 
-  def record(self, policy: policies.NumpyPolicy, steps: int, **extra) -> dict:
-    """Evaluates `policy`, saves it (and as the best if it is), logs."""
+  def record(
+    self,
+    policy: policies.NumpyPolicy,
+    steps: int,
+    evaluator: Callable[[policies.NumpyPolicy], dict] | None = None,
+    **extra,
+  ) -> dict:
+    """Evaluates `policy` (in simulation unless an `evaluator` is given),
+    saves it (and as the best if it is), logs."""
     wall = self._wall + time.perf_counter()
     cpu = self._cpu + time.process_time()
     policy.save(self.output / POLICY)
     start = time.perf_counter()
-    metrics = evaluate_policy(policy, self.config, self.config.eval_episodes)
+    if evaluator is None:
+      metrics = evaluate_policy(policy, self.config, self.config.eval_episodes)
+    else:
+      metrics = evaluator(policy)
     row = {
       'env_steps': int(steps),
       'wall_time': wall,
@@ -283,9 +304,14 @@ class _Run:
     return row
 
 
-def _check_resume(output: pathlib.Path, config: RunConfig) -> None:
+def check_resume(
+  output: pathlib.Path, config: RunConfig, need_checkpoint: bool = True
+) -> None:
+  """Raises ValueError unless `output` holds a run of `config` (only the
+  RESUMABLE_CHANGES may differ)."""
   path = output / CONFIG
-  if not (output / CHECKPOINT).is_file() and not (output / POLICY).is_file():
+  saved = (output / CHECKPOINT).is_file() or (output / POLICY).is_file()
+  if need_checkpoint and not saved:
     raise ValueError(f'--resume: no checkpoint in {output}')
   if not path.is_file():
     raise ValueError(f'--resume: {path} is missing')
@@ -320,7 +346,7 @@ def _normalized(config: RunConfig, name: str):
   return value
 
 
-def _grow_replay_buffer(model, size: int) -> None:
+def grow_replay_buffer(model, size: int) -> None:
   """Gives a loaded replay buffer room for `size` transitions in all,
   keeping every transition it holds (in order)."""
   buffer = model.replay_buffer
@@ -393,19 +419,10 @@ def train(
   metadata = metadata_of(config)  # Also checks the task's name.
   output = pathlib.Path(output_dir)
   if resume:
-    _check_resume(output, config)
-  data = None
-  if config.demos:
-    data = demos.load(
-      list(config.demos),
-      config.domain,
-      config.task,
-      tuple(metadata['observation_keys']),
-      config.task_kwargs,
-      config.demo_episodes,
-    )
+    check_resume(output, config)
+  data = load_data(config, tuple(metadata['observation_keys']))
   output.mkdir(parents=True, exist_ok=True)
-  run = _Run(output, config, log)
+  run = Run(output, config, log)
   if resume:
     run.load_history()
   else:
@@ -424,7 +441,38 @@ def train(
   return run.history
 
 
-def _clone(config: RunConfig, run: _Run, data, metadata) -> None:
+def load_data(
+  config: RunConfig, keys: tuple[str, ...]
+) -> demos.Transitions | None:
+  """The run's demonstrations and recordings as one set of transitions
+  (None if it has neither)."""
+  parts = []
+  if config.demos:
+    parts.append(
+      demos.load(
+        list(config.demos),
+        config.domain,
+        config.task,
+        keys,
+        config.task_kwargs,
+        config.demo_episodes,
+      )
+    )
+  if config.from_recording:
+    parts.append(
+      demos.load(
+        list(config.from_recording),
+        config.domain,
+        config.task,
+        keys,
+        config.task_kwargs,
+        complete_only=False,
+      )
+    )
+  return demos.concatenate(parts) if parts else None
+
+
+def _clone(config: RunConfig, run: Run, data, metadata) -> None:
   from robel_dm.learning import imitation  # noqa: PLC0415
 
   done = run.history[-1]['epoch'] if run.history else 0
@@ -453,7 +501,7 @@ def _clone(config: RunConfig, run: _Run, data, metadata) -> None:
   )
 
 
-def _reinforce(config: RunConfig, run: _Run, data, metadata, resume) -> None:
+def _reinforce(config: RunConfig, run: Run, data, metadata, resume) -> None:
   agent = config.agent
   output = run.output
   from stable_baselines3.common.logger import Logger  # noqa: PLC0415
@@ -467,7 +515,7 @@ def _reinforce(config: RunConfig, run: _Run, data, metadata, resume) -> None:
     model = agents.load(agent, checkpoint, vec_env)
     if agent.replay and (output / REPLAY_BUFFER).is_file():
       model.load_replay_buffer(str(output / REPLAY_BUFFER))
-      _grow_replay_buffer(model, config.steps + _demo_count(data))
+      grow_replay_buffer(model, config.steps + _demo_count(data))
     if (output / ENV_STATE).is_file():
       with open(output / ENV_STATE, 'rb') as file:
         _set_env_states(vec_env, pickle.load(file))

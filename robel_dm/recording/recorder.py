@@ -76,6 +76,11 @@ class Recorder(dm_env.Environment):
   def __getattr__(self, name):
     return getattr(self._env, name)
 
+  def annotate(self, **values: Any) -> None:
+    """Records `values` in the line of the episode under way and of every
+    later one (until annotated again), e.g. `purpose='evaluation'`."""
+    self._metadata.update(values)
+
   # --- dm_env.Environment ----------------------------------------------------
 
   def reset(self) -> dm_env.TimeStep:

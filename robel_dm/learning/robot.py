@@ -1,0 +1,801 @@
+r"""Learning on a robot, in real time (`train --device_path=...`).
+
+    python -m robel_dm.train --domain=dclaw --task=pose_fixed \
+        --device_path=/dev/ttyUSB0 --steps=8000 --output_dir=runs/claw
+
+Two processes share the work. This one (the *actor*) runs the robot: every
+control step it computes the action from the newest actor weights it has
+(numpy, microseconds), steps the robot at the task's control period, writes
+the transition to the run's recording and hands it to the *learner*. The
+learner, a process of its own so that its gradient updates never hold up a
+control step, keeps the replay buffer, updates the networks (at most
+`updates_per_step` updates per recorded transition) and sends new actor
+weights back a few times a second.
+
+Episodes: the task's reset runs between episodes (the robot's reset
+procedure); an episode whose safety violations reach `max_violations` ends
+early. A hardware fault ends its episode (the motors are released by the
+robot layer), is logged and counted; training goes on after the next
+successful reset, and stops, saved, after `reset_attempts` failed resets in
+a row. Ctrl-C or SIGTERM stops the run saved, with torque off.
+
+Every step is in `<output_dir>/recording` (the project's recording format,
+flushed at least once a second) the moment it happens; `--resume` rebuilds
+the replay buffer from it, so `kill -9` loses at most the last second. The
+networks resume from the last checkpoint (saved at every evaluation).
+
+Evaluations run on the robot too: `eval_episodes` episodes of the
+deterministic actor every `eval_every` robot steps. Their steps are recorded
+and learned from like the others; `steps` counts every control step the
+robot made.
+"""
+
+from collections.abc import Callable
+import contextlib
+import dataclasses
+import json
+import multiprocessing
+import os
+import pathlib
+import queue
+import signal
+import time
+from typing import Any
+
+import gymnasium
+import numpy as np
+
+from robel_dm import policies, recording, suite
+from robel_dm.hardware import dynamixel_errors, resets, tracking
+from robel_dm.learning import agents, demos
+from robel_dm.learning import train as train_lib
+from robel_dm.tasks import base
+
+SAFETY_FIELDS = base.SAFETY_FIELDS
+RECORDING = 'recording'
+PROGRESS_LOG = 'progress.jsonl'
+ROBOT = 'robot.json'
+# Errors of the robot an episode survives (after a reset).
+FAULTS = (
+  dynamixel_errors.DynamixelError,
+  tracking.TrackingError,
+  resets.ResetError,
+)
+# Agents that can learn on a robot: off-policy ones learn while it moves;
+# behaviour cloning learns from data and is evaluated on it.
+ROBOT_AGENTS = ('sac', 'sac_demos', 'bc')
+# What --resume may change besides RunConfig's resumable fields.
+RESUMABLE_OPTIONS = ('device_path', 'hours')
+# The learner sends actor weights at most this often, s.
+_PUBLISH_INTERVAL = 0.2
+# How long a stopping learner may take to save, s.
+_STOP_TIMEOUT = 120.0
+
+
+@dataclasses.dataclass(frozen=True)
+class RobotOptions:
+  """How a run uses its robot.
+
+  Attributes:
+    device_path: the Dynamixel bus ('/dev/ttyUSB0', a virtual bus's pty),
+      or 'virtual' for an in-process virtual bus in simulated time.
+    robot_config: a robot configuration file; ROBEL's robot if None.
+    reset: the reset procedure ('scripted', 'move', 'manual'); the
+      robot's default if None.
+    guide: D'Claw Turn/Screw guide motor mode, or None.
+    tracker: a D'Kitty's motion tracker spec (`hardware.tracker_spec`).
+    dynamics: with 'virtual', a calibration of the simulated robot.
+    hours: wall-clock budget of this session, h (None: `steps` only).
+    max_violations: an episode ends early once its safety violations
+      (position + velocity + current) reach this; None: never.
+    reset_attempts: failed resets in a row after which the run stops.
+    updates_per_step: gradient updates per recorded transition, at most.
+  """
+
+  device_path: str
+  robot_config: str | None = None
+  reset: str | None = None
+  guide: str | None = None
+  tracker: str | None = None
+  dynamics: str | None = None
+  hours: float | None = None
+  max_violations: int | None = None
+  reset_attempts: int = 3
+  updates_per_step: float = 1.0
+
+  def check(self) -> None:
+    """Raises ValueError naming the first bad option."""
+    if not self.device_path:
+      raise ValueError('device_path must name a bus (or be "virtual")')
+    if self.hours is not None and not self.hours > 0:
+      raise ValueError(f'hours must be > 0, got {self.hours}')
+    if self.max_violations is not None and self.max_violations < 1:
+      raise ValueError(
+        f'max_violations must be >= 1, got {self.max_violations}'
+      )
+    if self.reset_attempts < 1:
+      raise ValueError(
+        f'reset_attempts must be >= 1, got {self.reset_attempts}'
+      )
+    if not 0 < self.updates_per_step <= 64:
+      raise ValueError(
+        f'updates_per_step must be in (0, 64], got {self.updates_per_step}'
+      )
+
+  def load(self, config: train_lib.RunConfig, seed: int):
+    """The task's environment on the robot."""
+    tracker = None
+    if self.tracker is not None:
+      from robel_dm.hardware import tracker_spec  # noqa: PLC0415
+
+      tracker = tracker_spec.make_tracker(self.tracker)
+    return suite.load(
+      config.domain,
+      config.task,
+      task_kwargs=config.task_kwargs,
+      seed=seed,
+      device_path=self.device_path,
+      robot_config=self.robot_config,
+      reset=self.reset,
+      guide=self.guide,
+      tracker=tracker,
+      dynamics=self.dynamics,
+    )
+
+
+class StochasticActor:
+  """SAC's actor in numpy: tanh of a Gaussian whose mean and log-std the
+  network gives (the deterministic action is tanh of the mean)."""
+
+  def __init__(self, layers: list[tuple[np.ndarray, np.ndarray]]):
+    *self._hidden, self._mean, self._log_std = layers
+
+  def _features(self, observation: np.ndarray) -> np.ndarray:
+    x = observation
+    for weight, bias in self._hidden:
+      x = np.maximum(weight @ x + bias, 0.0)
+    return x
+
+  def mean(self, observation: np.ndarray) -> np.ndarray:
+    weight, bias = self._mean
+    return np.tanh(weight @ self._features(observation) + bias)
+
+  def sample(
+    self, observation: np.ndarray, rng: np.random.Generator
+  ) -> np.ndarray:
+    x = self._features(observation)
+    mean = self._mean[0] @ x + self._mean[1]
+    # sbx clips the log-std to [-20, 2].
+    log_std = np.clip(self._log_std[0] @ x + self._log_std[1], -20.0, 2.0)
+    return np.tanh(mean + np.exp(log_std) * rng.standard_normal(mean.shape))
+
+  def numpy_policy(self, metadata: dict[str, Any]) -> policies.NumpyPolicy:
+    layers = [*self._hidden, self._mean]
+    return policies.NumpyPolicy(
+      [w for w, _ in layers], [b for _, b in layers], 'relu', 'tanh', metadata
+    )
+
+
+# --- The learner process ---------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class LearnerSetup:
+  """What the learner process builds (picklable)."""
+
+  algo: str
+  seed: int
+  layers: tuple[int, ...]
+  observation_size: int
+  action_size: int
+  buffer_size: int
+  checkpoint: str
+  resume: bool
+  updates_per_step: float
+
+
+class _Spaces(gymnasium.Env):
+  """A stand-in environment with the task's spaces (never stepped)."""
+
+  def __init__(self, observation_size: int, action_size: int):
+    self.observation_space = gymnasium.spaces.Box(
+      -np.inf, np.inf, (observation_size,), np.float32
+    )
+    self.action_space = gymnasium.spaces.Box(
+      -1.0, 1.0, (action_size,), np.float32
+    )
+
+  def reset(self, *, seed=None, options=None):  # pragma: no cover
+    raise NotImplementedError('the learner never steps an environment')
+
+  def step(self, action):  # pragma: no cover
+    raise NotImplementedError('the learner never steps an environment')
+
+
+def _store(buffer, batch: tuple[np.ndarray, ...]) -> None:
+  """Appends transitions (observations, actions, rewards, next
+  observations, terminals) to an SB3 replay buffer; when it is full the
+  oldest go first, as SB3's own `add` does."""
+  observations, actions, rewards, next_observations, terminals = batch
+  rows = (buffer.pos + np.arange(len(actions))) % buffer.buffer_size
+  buffer.observations[rows, 0] = observations
+  buffer.next_observations[rows, 0] = next_observations
+  buffer.actions[rows, 0] = actions
+  buffer.rewards[rows, 0] = rewards
+  buffer.dones[rows, 0] = terminals
+  end = buffer.pos + len(actions)
+  buffer.full = buffer.full or end >= buffer.buffer_size
+  buffer.pos = end % buffer.buffer_size
+
+
+def learner_main(setup: LearnerSetup, inbox, outbox) -> None:
+  """The learner process: replay buffer in, actor weights out.
+
+  Messages in: ('data', batch) transitions to store; ('save',) write the
+  checkpoint; ('stop',) save and end. Out: ('actor', layers, updates),
+  ('saved', updates), ('stopped', updates), ('error', text).
+  """
+  try:
+    # Ctrl-C reaches the whole process group: the actor decides when the
+    # learner stops (after saving), not the signal.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    agents.single_thread()
+    from stable_baselines3.common.logger import Logger  # noqa: PLC0415
+    from stable_baselines3.common.vec_env import DummyVecEnv  # noqa: PLC0415
+
+    agent = agents.get(setup.algo)
+    env = DummyVecEnv(
+      [lambda: _Spaces(setup.observation_size, setup.action_size)]
+    )
+    checkpoint = pathlib.Path(setup.checkpoint)
+    if setup.resume and checkpoint.is_file():
+      model = agents.load(agent, checkpoint, env)
+    else:
+      model = agents.build(
+        agent, env, setup.seed, setup.layers, setup.buffer_size
+      )
+    # A loaded model's buffer is empty: the recording refills it.
+    train_lib.grow_replay_buffer(model, setup.buffer_size)
+    model.set_logger(Logger(folder=None, output_formats=[]))
+    chunk = int(model.gradient_steps)
+    starts = int(model.learning_starts)
+    _learn(model, setup, chunk, starts, checkpoint, inbox, outbox)
+  except BaseException as error:  # noqa: BLE001 (reported to the actor)
+    outbox.put(('error', f'{type(error).__name__}: {error}'))
+    raise
+
+
+def _learn(model, setup, chunk, starts, checkpoint, inbox, outbox) -> None:
+  buffer = model.replay_buffer
+  # Updates already made by the checkpoint's networks (a resumed run's
+  # replayed transitions do not earn new ones).
+  counts = checkpoint.with_suffix('.json')
+  updates = 0
+  if setup.resume and counts.is_file():
+    updates = json.loads(counts.read_text())['updates']
+  seen = 0
+
+  def save() -> None:
+    model.save(str(checkpoint))
+    counts.write_text(json.dumps({'updates': updates, 'transitions': seen}))
+
+  parent = os.getppid()
+  # The actor as it is first (untrained, or the checkpoint's): the robot
+  # can act before any update.
+  outbox.put(('actor', agents.sac_actor_layers(model), updates))
+  published = time.monotonic()
+  while True:
+    allowed = (seen - starts) * setup.updates_per_step
+    can_update = seen >= starts and updates + chunk <= allowed
+    try:
+      # Waits for data when there is nothing to learn yet.
+      message = inbox.get_nowait() if can_update else inbox.get(timeout=1.0)
+    except queue.Empty:
+      message = None
+      if os.getppid() != parent:  # The actor was killed: keep what we have.
+        save()
+        return
+    while message is not None:
+      kind = message[0]
+      if kind == 'data':
+        _store(buffer, message[1])
+        seen += len(message[1][1])
+      elif kind == 'save':
+        save()
+        outbox.put(('saved', updates))
+      elif kind == 'stop':
+        save()
+        outbox.put(('stopped', updates))
+        return
+      try:
+        message = inbox.get_nowait()
+      except queue.Empty:
+        message = None
+    if can_update:
+      model.train(gradient_steps=chunk, batch_size=model.batch_size)
+      updates += chunk
+      now = time.monotonic()
+      if now - published >= _PUBLISH_INTERVAL:
+        outbox.put(('actor', agents.sac_actor_layers(model), updates))
+        published = now
+
+
+class Learner:
+  """The learner process, seen from the actor."""
+
+  def __init__(self, setup: LearnerSetup):
+    context = multiprocessing.get_context('spawn')
+    self._inbox = context.Queue()
+    self._outbox = context.Queue()
+    self._process = context.Process(
+      target=learner_main,
+      args=(setup, self._inbox, self._outbox),
+      name='robel_dm-learner',
+      daemon=True,
+    )
+    self._process.start()
+    self.updates = 0
+    self.actor: StochasticActor | None = None
+
+  def add(self, batch: tuple[np.ndarray, ...]) -> None:
+    self._inbox.put(('data', batch))
+
+  def poll(self) -> None:
+    """Takes the newest actor weights sent (never waits)."""
+    while True:
+      try:
+        message = self._outbox.get_nowait()
+      except queue.Empty:
+        return
+      self._handle(message)
+
+  def _handle(self, message) -> str:
+    kind = message[0]
+    if kind == 'actor':
+      self.actor = StochasticActor(message[1])
+      self.updates = message[2]
+    elif kind == 'error':
+      raise RuntimeError(f'the learner process failed: {message[1]}')
+    else:
+      self.updates = message[1]
+    return kind
+
+  def wait_for_actor(self, timeout: float = _STOP_TIMEOUT) -> 'StochasticActor':
+    """The actor's weights, waiting for the learner's first ones."""
+    deadline = time.monotonic() + timeout
+    while self.actor is None:
+      if time.monotonic() > deadline:
+        raise RuntimeError(f'the learner sent no actor within {timeout:.0f} s')
+      try:
+        self._handle(self._outbox.get(timeout=0.5))
+      except queue.Empty:
+        self.check_alive()
+    return self.actor
+
+  def check_alive(self) -> None:
+    if not self._process.is_alive():
+      self.poll()  # Its error, if it sent one.
+      raise RuntimeError(
+        f'the learner process ended (exit code {self._process.exitcode})'
+      )
+
+  def request(self, kind: str, timeout: float = _STOP_TIMEOUT) -> None:
+    """Sends ('save',) or ('stop',) and waits for the answer."""
+    self._inbox.put((kind,))
+    deadline = time.monotonic() + timeout
+    answer = {'save': 'saved', 'stop': 'stopped'}[kind]
+    while time.monotonic() < deadline:
+      try:
+        message = self._outbox.get(timeout=0.5)
+      except queue.Empty:
+        if not self._process.is_alive():
+          raise RuntimeError('the learner process ended') from None
+        continue
+      if self._handle(message) == answer:
+        return
+    raise RuntimeError(f'the learner did not {kind} within {timeout:.0f} s')
+
+  def close(self) -> None:
+    """Stops the process (it saves first if it still can)."""
+    if self._process.is_alive():
+      with contextlib.suppress(RuntimeError):  # It may have died.
+        self.request('stop')
+    self._process.join(timeout=5)
+    if self._process.is_alive():
+      self._process.terminate()
+      self._process.join(timeout=5)
+
+
+# --- The actor -------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class _Episode:
+  """What one episode did."""
+
+  purpose: str
+  steps: int = 0
+  reward: float = 0.0
+  success: bool = False
+  score: float = 0.0
+  violations: np.ndarray = dataclasses.field(
+    default_factory=lambda: np.zeros(3)
+  )
+  ended: str = 'time limit'
+
+
+def _flatten(observation: dict, keys: tuple[str, ...]) -> np.ndarray:
+  return np.concatenate([np.ravel(observation[key]) for key in keys]).astype(
+    np.float32
+  )
+
+
+class _RobotRun:
+  """The actor side of a run: the robot, the recording, the bookkeeping."""
+
+  def __init__(self, config, options, output, metadata, learner, log):
+    self.config, self.options, self.output = config, options, output
+    self.metadata, self.learner, self.log = metadata, learner, log
+    self.keys = tuple(metadata['observation_keys'])
+    self.steps = 0
+    self.episodes = 0
+    self.faults = 0
+    self.early_ends = 0
+    self.rng = np.random.default_rng()
+    self.env = None
+    self.learning_starts = int(
+      config.agent.hyperparameters.get('learning_starts', 0)
+    )
+
+  def open(self, seed: int) -> None:
+    env = self.options.load(self.config, seed)
+    try:
+      self.env = recording.Recorder(
+        env,
+        self.output / RECORDING,
+        metadata={
+          'domain': self.config.domain,
+          'task': self.config.task,
+          'task_kwargs': dict(self.config.task_kwargs),
+          'seed': seed,
+          'device_path': self.options.device_path,
+          'policy': f'train --algo={self.config.algo}',
+        },
+      )
+    except BaseException:
+      env.close()
+      raise
+    self.timing = getattr(self.env.physics, 'timing', None)
+
+  def close(self) -> None:
+    if self.env is not None:
+      self.env.close()  # Finishes the recording; the motors are released.
+
+  def _reset(self):
+    """Resets the robot, retrying; raises after `reset_attempts` failures."""
+    for attempt in range(1, self.options.reset_attempts + 1):
+      try:
+        return self.env.reset()
+      except FAULTS as error:
+        self.faults += 1
+        self.log(
+          f'reset failed ({attempt} of {self.options.reset_attempts}): '
+          f'{type(error).__name__}: {error}'
+        )
+        last = error
+    raise RuntimeError(
+      f'the robot could not be reset {self.options.reset_attempts} times in '
+      f'a row (last: {last}); the run is saved: fix the robot, then --resume'
+    ) from last
+
+  def episode(self, purpose: str, policy=None) -> _Episode:
+    """One episode: training (the stochastic actor, or uniform actions
+    before learning starts) or evaluation (`policy`, deterministic)."""
+    self.env.annotate(purpose=purpose)
+    timestep = self._reset()
+    result = _Episode(purpose)
+    since = len(self.timing) if self.timing is not None else 0
+    observation = _flatten(timestep.observation, self.keys)
+    action_size = self.env.action_spec().shape[0]
+    while not timestep.last():
+      self.learner.poll()
+      if policy is not None:
+        action = policy.act(observation)
+      elif self.learner.actor is None or self.steps < self.learning_starts:
+        action = self.rng.uniform(-1.0, 1.0, action_size)
+      else:
+        action = self.learner.actor.sample(observation, self.rng)
+      try:
+        timestep = self.env.step(action)
+      except FAULTS as error:
+        self.faults += 1
+        result.ended = f'fault: {type(error).__name__}: {error}'
+        self.log(f'hardware fault, episode ended, torque off: {error}')
+        break
+      next_observation = _flatten(timestep.observation, self.keys)
+      terminal = timestep.last() and timestep.discount == 0.0
+      self.learner.add(
+        (
+          observation[None],
+          np.asarray(action, np.float32)[None],
+          np.float32([timestep.reward]),
+          next_observation[None],
+          np.array([terminal]),
+        )
+      )
+      observation = next_observation
+      self.steps += 1
+      result.steps += 1
+      result.reward += float(timestep.reward)
+      result.violations += timestep.observation['safety']
+      result.success = bool(timestep.observation['success'])
+      result.score = float(timestep.observation['score'])
+      limit = self.options.max_violations
+      if limit is not None and result.violations.sum() >= limit:
+        result.ended = f'safety: {int(result.violations.sum())} violations'
+        self.early_ends += 1
+        break
+    else:
+      if timestep.discount == 0.0:
+        result.ended = 'task ended it'
+    self.episodes += 1
+    self._progress(result, since)
+    return result
+
+  def _progress(self, result: _Episode, since: int) -> None:
+    timing = self.timing.summary(since) if self.timing is not None else None
+    row = {
+      'episode': self.episodes,
+      'purpose': result.purpose,
+      'robot_steps': self.steps,
+      'steps': result.steps,
+      'return': result.reward,
+      'success': result.success,
+      'score': result.score,
+      'violations': dict(
+        zip(SAFETY_FIELDS, result.violations.tolist(), strict=True)
+      ),
+      'ended': result.ended,
+      'updates': self.learner.updates,
+      'faults': self.faults,
+      'early_ends': self.early_ends,
+      'timing': None if timing is None else dataclasses.asdict(timing),
+    }
+    with open(self.output / PROGRESS_LOG, 'a') as file:
+      file.write(json.dumps(row) + '\n')
+    violations = '/'.join(f'{v:.0f}' for v in result.violations)
+    self.log(
+      f'episode {self.episodes} ({result.purpose}): {result.steps} steps, '
+      f'return {result.reward:.1f}, success {int(result.success)}, '
+      f'violations pos/vel/cur {violations}, {result.ended}'
+      + (f'; {timing.line()}' if timing is not None else '')
+      + f' | robot steps {self.steps}, updates {self.learner.updates}, '
+      f'faults {self.faults}'
+    )
+
+  def evaluate(self, policy: policies.NumpyPolicy) -> dict[str, Any]:
+    """The evaluation metrics of `policy`, from episodes on the robot."""
+    episodes = [
+      self.episode('evaluation', policy)
+      for _ in range(self.config.eval_episodes)
+    ]
+    n = len(episodes)
+    violations = sum(e.violations for e in episodes) / n
+    return {
+      'success_rate': sum(e.success for e in episodes) / n,
+      'mean_score': sum(e.score for e in episodes) / n,
+      'mean_return': sum(e.reward for e in episodes) / n,
+      'safety': dict(zip(SAFETY_FIELDS, violations.tolist(), strict=True)),
+      'episodes': n,
+      'on_robot': True,
+    }
+
+
+def _check_robot_resume(output: pathlib.Path, options: RobotOptions) -> None:
+  path = output / ROBOT
+  if not path.is_file():
+    raise ValueError(f'--resume: {path} is missing (not a run on a robot)')
+  saved = json.loads(path.read_text())
+  differences = [
+    f'{name}: {saved.get(name)!r} (now {getattr(options, name)!r})'
+    for name in (f.name for f in dataclasses.fields(RobotOptions))
+    if name not in RESUMABLE_OPTIONS
+    and saved.get(name) != getattr(options, name)
+  ]
+  if differences:
+    raise ValueError(
+      f'--resume: {output} learned with other robot options (only '
+      '--device_path and --hours may change): ' + '; '.join(differences)
+    )
+
+
+def _recorded(output: pathlib.Path, config, keys) -> demos.Transitions | None:
+  """Every transition the run's recording holds (None if it has none)."""
+  directory = output / RECORDING
+  if not (directory / 'meta').is_dir():
+    return None
+  try:
+    return demos.load(
+      directory,
+      config.domain,
+      config.task,
+      keys,
+      config.task_kwargs,
+      complete_only=False,
+    )
+  except demos.DemoError:
+    return None
+
+
+def train_on_robot(
+  config: train_lib.RunConfig,
+  options: RobotOptions,
+  output_dir: str | pathlib.Path,
+  *,
+  resume: bool = False,
+  log: Callable[[str], None] = print,
+) -> list[dict[str, Any]]:
+  """Trains `config` on a robot in real time (see the module docstring).
+
+  Returns:
+    The evaluation log.
+
+  Raises:
+    ValueError: for bad settings or a --resume with other ones, before the
+      robot moves.
+    RuntimeError: when the robot cannot be reset (the run is saved).
+  """
+  config.check()
+  options.check()
+  if config.algo not in ROBOT_AGENTS:
+    raise ValueError(
+      f'on a robot --algo must be one of {", ".join(ROBOT_AGENTS)}, '
+      f'got {config.algo}'
+    )
+  if config.num_envs != 1:
+    raise ValueError('a robot is one environment: --num_envs must be 1')
+  agents.check_installed(config.agent)
+  metadata = train_lib.metadata_of(config)
+  keys = tuple(metadata['observation_keys'])
+  output = pathlib.Path(output_dir)
+  if resume:
+    train_lib.check_resume(output, config, need_checkpoint=False)
+    _check_robot_resume(output, options)
+  elif (output / RECORDING).exists():
+    raise ValueError(
+      f'{output} already holds a run (pass --resume to continue it)'
+    )
+  data = train_lib.load_data(config, keys)
+  recorded = _recorded(output, config, keys) if resume else None
+  output.mkdir(parents=True, exist_ok=True)
+  (output / train_lib.CONFIG).write_text(json.dumps(config.to_json(), indent=1))
+  (output / ROBOT).write_text(json.dumps(dataclasses.asdict(options), indent=1))
+  run = train_lib.Run(output, config, log)
+  if resume:
+    run.load_history()
+  else:
+    run.log_path.write_text('')
+  if config.agent.kind == agents.IMITATION:
+    from robel_dm.learning import imitation  # noqa: PLC0415
+
+    hyper = config.agent.hyperparameters
+    policy = imitation.fit(
+      data,
+      config.layers,
+      config.seed,
+      config.steps,
+      hyper['batch_size'],
+      hyper['learning_rate'],
+      metadata,
+    )
+    _evaluate_on_robot(config, options, output, run, policy, metadata, log)
+    return run.history
+  held = sum(len(d) for d in (data, recorded) if d is not None)
+  observation_size, action_size = _sizes(config, keys)
+  setup = LearnerSetup(
+    algo=config.algo,
+    seed=config.seed,
+    layers=config.layers,
+    observation_size=observation_size,
+    action_size=action_size,
+    # Room for the evaluations' and the last episode's steps too, which
+    # may run past `steps`; beyond that the oldest transitions go first.
+    buffer_size=2 * config.steps + held,
+    checkpoint=str(output / train_lib.CHECKPOINT),
+    resume=resume,
+    updates_per_step=options.updates_per_step,
+  )
+  learner = Learner(setup)
+  actor = _RobotRun(config, options, output, metadata, learner, log)
+  try:
+    for batch in (data, recorded):
+      if batch is not None:
+        learner.add(
+          (
+            batch.observations,
+            batch.actions,
+            batch.rewards,
+            batch.next_observations,
+            batch.terminals,
+          )
+        )
+    if recorded is not None:
+      actor.steps = len(recorded)
+      actor.episodes = recorded.episodes
+      log(
+        f'resuming at robot step {actor.steps}: {len(recorded)} recorded '
+        'transitions back in the replay buffer'
+      )
+    _actor_loop(config, options, run, actor, learner, metadata)
+  finally:
+    try:
+      actor.close()  # The robot first: torque off before anything else.
+    finally:
+      learner.close()
+  return run.history
+
+
+def _sizes(config, keys: tuple[str, ...]) -> tuple[int, int]:
+  """The agent vector's and the action's sizes (from the simulation)."""
+  env = suite.load(config.domain, config.task, task_kwargs=config.task_kwargs)
+  spec = env.observation_spec()
+  size = sum(int(np.prod(spec[key].shape)) for key in keys)
+  actions = env.action_spec().shape[0]
+  env.close()
+  return size, actions
+
+
+def _actor_loop(config, options, run, actor, learner, metadata) -> None:
+  deadline = time.monotonic() + options.hours * 3600 if options.hours else None
+  # A new stream of episodes per session: a resumed run does not replay
+  # the goals it has already seen.
+  actor.open(config.seed * 1000 + actor.episodes)
+  actor.rng = np.random.default_rng([config.seed, actor.steps])
+  run.start_clocks()
+
+  def evaluate_now() -> bool:
+    learner.request('save')
+    policy = learner.wait_for_actor().numpy_policy(metadata)
+    row = run.record(policy, actor.steps, evaluator=actor.evaluate)
+    return run.solved(row)
+
+  next_eval = (
+    (actor.steps // config.eval_every + 1) * config.eval_every
+    if run.history
+    else 0
+  )
+  while actor.steps < config.steps:
+    if deadline is not None and time.monotonic() > deadline:
+      run.log(f'--hours budget used at robot step {actor.steps}; saved')
+      break
+    learner.check_alive()
+    if actor.steps >= next_eval:
+      if evaluate_now():
+        break
+      next_eval = (actor.steps // config.eval_every + 1) * config.eval_every
+      continue
+    actor.episode('training')
+  else:
+    evaluate_now()
+
+
+def _evaluate_on_robot(config, options, output, run, policy, metadata, log):
+  """Behaviour cloning on a robot: the robot only evaluates."""
+
+  class _NoLearner:
+    updates = 0
+    actor = None
+
+    def poll(self):
+      pass
+
+    def add(self, batch):
+      pass
+
+  actor = _RobotRun(config, options, output, metadata, _NoLearner(), log)
+  try:
+    actor.open(config.seed * 1000)
+    run.start_clocks()
+    run.record(policy, 0, evaluator=actor.evaluate, epoch=config.steps)
+  finally:
+    actor.close()

@@ -1,0 +1,253 @@
+"""Learning on a robot: `train --device_path`, on the in-process virtual bus.
+
+The bus runs in simulated time here (fast); the real-time figures (control
+period jitter, late steps) come from the standalone bus in
+benchmarks/robot_training.py.
+"""
+
+import json
+import os
+import pathlib
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip('sbx')
+pytest.importorskip('dynamixel_sdk')
+
+from robel_dm import recording  # noqa: E402
+from robel_dm.learning import robot  # noqa: E402
+from robel_dm.learning import train as train_lib  # noqa: E402
+from tests import child_signals  # noqa: E402
+
+# Pose runs 80 steps per episode; learning starts at 500 steps.
+CONFIG = train_lib.RunConfig(
+  domain='dclaw', task='pose_fixed', steps=700, eval_every=640,
+  eval_episodes=1,
+)  # fmt: skip
+VIRTUAL = robot.RobotOptions(device_path='virtual')
+
+
+def _rows(path: pathlib.Path) -> list[dict]:
+  return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+def _recorded_steps(directory: pathlib.Path) -> int:
+  return sum(len(e) - 1 for e in recording.read(directory))
+
+
+def _inject(monkeypatch, on_step) -> list:
+  """Calls `on_step(env, n)` before every robot step n of the run."""
+  envs = []
+  load = robot.RobotOptions.load
+
+  def load_and_watch(options, config, seed):
+    env = load(options, config, seed)
+    step, count = env.step, [0]
+
+    def watched(action):
+      count[0] += 1
+      on_step(env, count[0])
+      return step(action)
+
+    env.step = watched
+    envs.append(env)
+    return env
+
+  monkeypatch.setattr(robot.RobotOptions, 'load', load_and_watch)
+  return envs
+
+
+def test_a_run_learns_on_the_bus_records_every_step_and_resumes(tmp_path):
+  lines = []
+  history = robot.train_on_robot(CONFIG, VIRTUAL, tmp_path, log=lines.append)
+  # Evaluated on the robot before learning and at the end.
+  assert [row['env_steps'] for row in history][0] == 0
+  assert all(row['on_robot'] for row in history)
+  assert history[-1]['env_steps'] >= CONFIG.steps
+  progress = _rows(tmp_path / robot.PROGRESS_LOG)
+  steps = progress[-1]['robot_steps']
+  assert steps >= CONFIG.steps
+  # Every step is in the recording, training and evaluation episodes alike.
+  assert _recorded_steps(tmp_path / robot.RECORDING) == steps
+  purposes = {e.metadata['purpose'] for e in recording.read(tmp_path / 'recording')}
+  assert purposes == {'training', 'evaluation'}
+  # The learner updated the networks and the actor used them.
+  assert progress[-1]['updates'] > 0
+  timing = progress[-1]['timing']
+  assert timing['steps'] == progress[-1]['steps'] and timing['late_steps'] == 0
+  assert 'period p50 50.0 ms' in lines[-2] or 'period p50 50.0 ms' in lines[-3]
+  for name in (train_lib.POLICY, train_lib.BEST_POLICY, train_lib.CHECKPOINT):
+    assert (tmp_path / name).is_file()
+  # --resume refills the replay buffer from the recording and goes on.
+  more = robot.train_on_robot(
+    CONFIG.__class__(**{**CONFIG.__dict__, 'steps': steps + 160}),
+    VIRTUAL,
+    tmp_path,
+    resume=True,
+    log=lines.append,
+  )
+  assert f'resuming at robot step {steps}: {steps} recorded' in '\n'.join(lines)
+  assert more[-1]['env_steps'] >= steps + 160
+  assert _recorded_steps(tmp_path / robot.RECORDING) == _rows(
+    tmp_path / robot.PROGRESS_LOG
+  )[-1]['robot_steps']
+
+
+def test_a_fault_ends_the_episode_and_training_goes_on(tmp_path, monkeypatch):
+  def lose_goals(env, n):
+    if n == 100:  # In the second training episode.
+      env.virtual_bus.faults.lose_next_write(12, 3)
+
+  _inject(monkeypatch, lose_goals)
+  config = CONFIG.__class__(**{**CONFIG.__dict__, 'steps': 400})
+  lines = []
+  robot.train_on_robot(config, VIRTUAL, tmp_path, log=lines.append)
+  progress = _rows(tmp_path / robot.PROGRESS_LOG)
+  faulted = [row for row in progress if row['ended'].startswith('fault')]
+  assert len(faulted) == 1 and 'motors [12]' in faulted[0]['ended']
+  assert progress[-1]['faults'] == 1
+  # Training went on after the fault, up to its budget.
+  assert progress.index(faulted[0]) < len(progress) - 1
+  assert progress[-1]['robot_steps'] >= 400
+  episodes = recording.read(tmp_path / robot.RECORDING)
+  assert [e.metadata['complete'] for e in episodes].count(False) == 1
+  assert any('hardware fault' in line for line in lines)
+
+
+def test_a_robot_that_cannot_be_reset_stops_the_run_saved(
+  tmp_path, monkeypatch
+):
+  def unplug(env, n):
+    if n == 100:
+      env.virtual_bus.faults.set_absent(21)
+
+  envs = _inject(monkeypatch, unplug)
+  options = robot.RobotOptions(device_path='virtual', reset_attempts=2)
+  with pytest.raises(RuntimeError, match='could not be reset 2 times'):
+    robot.train_on_robot(CONFIG, options, tmp_path, log=lambda line: None)
+  # Every motor that answers is released (the unplugged one cannot hear).
+  servos = envs[0].virtual_bus.servos
+  assert not any(s.torque_enabled for s in servos if s.motor_id != 21)
+  assert (tmp_path / train_lib.CHECKPOINT).is_file()
+  assert _recorded_steps(tmp_path / robot.RECORDING) >= 99
+
+
+def test_an_episode_ends_at_the_safety_threshold(tmp_path):
+  options = robot.RobotOptions(device_path='virtual', max_violations=50)
+  config = CONFIG.__class__(**{**CONFIG.__dict__, 'steps': 300})
+  robot.train_on_robot(config, options, tmp_path, log=lambda line: None)
+  progress = _rows(tmp_path / robot.PROGRESS_LOG)
+  early = [row for row in progress if row['ended'].startswith('safety')]
+  # Uniform random actions break the velocity limits within a few steps.
+  assert early and all(sum(r['violations'].values()) >= 50 for r in early)
+  assert all(row['steps'] < 80 for row in early)
+  assert progress[-1]['early_ends'] == len(early)
+
+
+_KILLABLE = """
+import sys
+from robel_dm.learning import robot, train
+config = train.RunConfig(domain='dclaw', task='pose_fixed', steps=100000,
+                         eval_every=100000, eval_episodes=1)
+robot.train_on_robot(config, robot.RobotOptions(device_path='virtual'),
+                     sys.argv[1], log=lambda line: print(line, flush=True))
+"""
+
+
+def test_kill_9_loses_nothing_already_recorded_and_resume_goes_on(tmp_path):
+  root = pathlib.Path(__file__).resolve().parents[1]
+  process = subprocess.Popen(
+    [sys.executable, '-c', _KILLABLE, str(tmp_path)],
+    cwd=root,
+    env={**os.environ, 'MUJOCO_GL': 'egl'},
+    stdout=subprocess.PIPE,
+    stderr=subprocess.DEVNULL,
+    preexec_fn=child_signals.default,
+    text=True,
+  )
+  try:
+    for line in process.stdout:  # Wait for the third training episode.
+      if line.startswith('episode 4 '):
+        break
+    time.sleep(1.5)
+    process.send_signal(signal.SIGKILL)
+  finally:
+    process.wait(timeout=30)
+  recorded = _recorded_steps(tmp_path / robot.RECORDING)
+  assert recorded >= 240
+  lines = []
+  config = CONFIG.__class__(**{**CONFIG.__dict__, 'steps': recorded + 80})
+  robot.train_on_robot(config, VIRTUAL, tmp_path, resume=True, log=lines.append)
+  assert f'resuming at robot step {recorded}: {recorded} recorded' in lines[0]
+  assert _recorded_steps(tmp_path / robot.RECORDING) >= recorded + 80
+
+
+def test_learning_starts_from_a_recording(tmp_path):
+  # A recording made elsewhere (here: the reference controller, simulated).
+  from robel_dm import evaluate  # noqa: PLC0415
+
+  evaluate.evaluate(
+    'dclaw', 'pose_fixed', 2, policy='reference', record=str(tmp_path / 'r')
+  )
+  config = train_lib.RunConfig(
+    domain='dclaw', task='pose_fixed', steps=16, eval_every=16,
+    eval_episodes=1, from_recording=(str(tmp_path / 'r'),),
+  )  # fmt: skip
+  train_lib.train(config, tmp_path / 'run', log=lambda line: None)
+  import pickle  # noqa: PLC0415
+
+  with open(tmp_path / 'run' / train_lib.REPLAY_BUFFER, 'rb') as file:
+    buffer = pickle.load(file)
+  # The 2 x 80 recorded transitions, then the run's own 16: full.
+  assert buffer.buffer_size == 160 + 16 and buffer.full
+  recorded = [e.steps['action'][1:] for e in recording.read(tmp_path / 'r')]
+  np.testing.assert_allclose(
+    buffer.actions[:160, 0], np.concatenate(recorded), rtol=1e-6
+  )
+
+
+@pytest.mark.parametrize(
+  'options, config, message',
+  [
+    (robot.RobotOptions('virtual', hours=0), CONFIG, 'hours must be > 0'),
+    (robot.RobotOptions('virtual'), CONFIG.__class__(
+      domain='dclaw', task='pose_fixed', algo='ppo'), 'must be one of'),
+    (robot.RobotOptions('virtual', max_violations=0), CONFIG,
+     'max_violations must be >= 1'),
+    (robot.RobotOptions('virtual', updates_per_step=0), CONFIG,
+     'updates_per_step must be in'),
+  ],
+)  # fmt: skip
+def test_bad_robot_options_are_refused_before_the_robot_moves(
+  tmp_path, options, config, message
+):
+  with pytest.raises(ValueError, match=message):
+    robot.train_on_robot(config, options, tmp_path, log=print)
+  assert not (tmp_path / robot.RECORDING).exists()
+
+
+def test_resuming_with_other_robot_options_is_refused(tmp_path):
+  (tmp_path / train_lib.CONFIG).write_text(json.dumps(CONFIG.to_json()))
+  (tmp_path / robot.ROBOT).write_text(
+    json.dumps({**VIRTUAL.__dict__, 'max_violations': 5})
+  )
+  with pytest.raises(ValueError, match='max_violations: 5'):
+    robot.train_on_robot(CONFIG, VIRTUAL, tmp_path, resume=True)
+
+
+def test_the_command_line_refuses_robot_flags_without_a_robot(tmp_path):
+  result = subprocess.run(
+    [sys.executable, '-m', 'robel_dm.train', '--hours=1',
+     f'--output_dir={tmp_path}'],
+    capture_output=True, text=True, timeout=120,
+    env={**os.environ, 'MUJOCO_GL': 'egl'},
+  )  # fmt: skip
+  assert result.returncode == 2
+  assert result.stderr.strip().splitlines()[-1] == (
+    'error: --hours needs --device_path (it is about a robot)'
+  )
