@@ -74,7 +74,8 @@ def test_a_run_learns_on_the_bus_records_every_step_and_resumes(tmp_path):
   assert steps >= CONFIG.steps
   # Every step is in the recording, training and evaluation episodes alike.
   assert _recorded_steps(tmp_path / robot.RECORDING) == steps
-  purposes = {e.metadata['purpose'] for e in recording.read(tmp_path / 'recording')}
+  episodes = recording.read(tmp_path / robot.RECORDING)
+  purposes = {e.metadata['purpose'] for e in episodes}
   assert purposes == {'training', 'evaluation'}
   # The learner updated the networks and the actor used them.
   assert progress[-1]['updates'] > 0
@@ -93,9 +94,10 @@ def test_a_run_learns_on_the_bus_records_every_step_and_resumes(tmp_path):
   )
   assert f'resuming at robot step {steps}: {steps} recorded' in '\n'.join(lines)
   assert more[-1]['env_steps'] >= steps + 160
-  assert _recorded_steps(tmp_path / robot.RECORDING) == _rows(
-    tmp_path / robot.PROGRESS_LOG
-  )[-1]['robot_steps']
+  assert (
+    _recorded_steps(tmp_path / robot.RECORDING)
+    == _rows(tmp_path / robot.PROGRESS_LOG)[-1]['robot_steps']
+  )
 
 
 def test_a_fault_ends_the_episode_and_training_goes_on(tmp_path, monkeypatch):

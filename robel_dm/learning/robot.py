@@ -31,23 +31,18 @@ robot made.
 """
 
 from collections.abc import Callable
-import contextlib
 import dataclasses
 import json
-import multiprocessing
-import os
 import pathlib
-import queue
-import signal
 import time
 from typing import Any
 
-import gymnasium
 import numpy as np
 
 from robel_dm import policies, recording, suite
 from robel_dm.hardware import dynamixel_errors, resets, tracking
 from robel_dm.learning import agents, demos
+from robel_dm.learning import learner as learner_lib
 from robel_dm.learning import train as train_lib
 from robel_dm.tasks import base
 
@@ -66,10 +61,6 @@ FAULTS = (
 ROBOT_AGENTS = ('sac', 'sac_demos', 'bc')
 # What --resume may change besides RunConfig's resumable fields.
 RESUMABLE_OPTIONS = ('device_path', 'hours')
-# The learner sends actor weights at most this often, s.
-_PUBLISH_INTERVAL = 0.2
-# How long a stopping learner may take to save, s.
-_STOP_TIMEOUT = 120.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -141,269 +132,6 @@ class RobotOptions:
       tracker=tracker,
       dynamics=self.dynamics,
     )
-
-
-class StochasticActor:
-  """SAC's actor in numpy: tanh of a Gaussian whose mean and log-std the
-  network gives (the deterministic action is tanh of the mean)."""
-
-  def __init__(self, layers: list[tuple[np.ndarray, np.ndarray]]):
-    *self._hidden, self._mean, self._log_std = layers
-
-  def _features(self, observation: np.ndarray) -> np.ndarray:
-    x = observation
-    for weight, bias in self._hidden:
-      x = np.maximum(weight @ x + bias, 0.0)
-    return x
-
-  def mean(self, observation: np.ndarray) -> np.ndarray:
-    weight, bias = self._mean
-    return np.tanh(weight @ self._features(observation) + bias)
-
-  def sample(
-    self, observation: np.ndarray, rng: np.random.Generator
-  ) -> np.ndarray:
-    x = self._features(observation)
-    mean = self._mean[0] @ x + self._mean[1]
-    # sbx clips the log-std to [-20, 2].
-    log_std = np.clip(self._log_std[0] @ x + self._log_std[1], -20.0, 2.0)
-    return np.tanh(mean + np.exp(log_std) * rng.standard_normal(mean.shape))
-
-  def numpy_policy(self, metadata: dict[str, Any]) -> policies.NumpyPolicy:
-    layers = [*self._hidden, self._mean]
-    return policies.NumpyPolicy(
-      [w for w, _ in layers], [b for _, b in layers], 'relu', 'tanh', metadata
-    )
-
-
-# --- The learner process ---------------------------------------------------
-
-
-@dataclasses.dataclass(frozen=True)
-class LearnerSetup:
-  """What the learner process builds (picklable)."""
-
-  algo: str
-  seed: int
-  layers: tuple[int, ...]
-  observation_size: int
-  action_size: int
-  buffer_size: int
-  checkpoint: str
-  resume: bool
-  updates_per_step: float
-
-
-class _Spaces(gymnasium.Env):
-  """A stand-in environment with the task's spaces (never stepped)."""
-
-  def __init__(self, observation_size: int, action_size: int):
-    self.observation_space = gymnasium.spaces.Box(
-      -np.inf, np.inf, (observation_size,), np.float32
-    )
-    self.action_space = gymnasium.spaces.Box(
-      -1.0, 1.0, (action_size,), np.float32
-    )
-
-  def reset(self, *, seed=None, options=None):  # pragma: no cover
-    raise NotImplementedError('the learner never steps an environment')
-
-  def step(self, action):  # pragma: no cover
-    raise NotImplementedError('the learner never steps an environment')
-
-
-def _store(buffer, batch: tuple[np.ndarray, ...]) -> None:
-  """Appends transitions (observations, actions, rewards, next
-  observations, terminals) to an SB3 replay buffer; when it is full the
-  oldest go first, as SB3's own `add` does."""
-  observations, actions, rewards, next_observations, terminals = batch
-  rows = (buffer.pos + np.arange(len(actions))) % buffer.buffer_size
-  buffer.observations[rows, 0] = observations
-  buffer.next_observations[rows, 0] = next_observations
-  buffer.actions[rows, 0] = actions
-  buffer.rewards[rows, 0] = rewards
-  buffer.dones[rows, 0] = terminals
-  end = buffer.pos + len(actions)
-  buffer.full = buffer.full or end >= buffer.buffer_size
-  buffer.pos = end % buffer.buffer_size
-
-
-def learner_main(setup: LearnerSetup, inbox, outbox) -> None:
-  """The learner process: replay buffer in, actor weights out.
-
-  Messages in: ('data', batch) transitions to store; ('save',) write the
-  checkpoint; ('stop',) save and end. Out: ('actor', layers, updates),
-  ('saved', updates), ('stopped', updates), ('error', text).
-  """
-  try:
-    # Ctrl-C reaches the whole process group: the actor decides when the
-    # learner stops (after saving), not the signal.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    agents.single_thread()
-    from stable_baselines3.common.logger import Logger  # noqa: PLC0415
-    from stable_baselines3.common.vec_env import DummyVecEnv  # noqa: PLC0415
-
-    agent = agents.get(setup.algo)
-    env = DummyVecEnv(
-      [lambda: _Spaces(setup.observation_size, setup.action_size)]
-    )
-    checkpoint = pathlib.Path(setup.checkpoint)
-    if setup.resume and checkpoint.is_file():
-      model = agents.load(agent, checkpoint, env)
-    else:
-      model = agents.build(
-        agent, env, setup.seed, setup.layers, setup.buffer_size
-      )
-    # A loaded model's buffer is empty: the recording refills it.
-    train_lib.grow_replay_buffer(model, setup.buffer_size)
-    model.set_logger(Logger(folder=None, output_formats=[]))
-    chunk = int(model.gradient_steps)
-    starts = int(model.learning_starts)
-    _learn(model, setup, chunk, starts, checkpoint, inbox, outbox)
-  except BaseException as error:  # noqa: BLE001 (reported to the actor)
-    outbox.put(('error', f'{type(error).__name__}: {error}'))
-    raise
-
-
-def _learn(model, setup, chunk, starts, checkpoint, inbox, outbox) -> None:
-  buffer = model.replay_buffer
-  # Updates already made by the checkpoint's networks (a resumed run's
-  # replayed transitions do not earn new ones).
-  counts = checkpoint.with_suffix('.json')
-  updates = 0
-  if setup.resume and counts.is_file():
-    updates = json.loads(counts.read_text())['updates']
-  seen = 0
-
-  def save() -> None:
-    model.save(str(checkpoint))
-    counts.write_text(json.dumps({'updates': updates, 'transitions': seen}))
-
-  parent = os.getppid()
-  # The actor as it is first (untrained, or the checkpoint's): the robot
-  # can act before any update.
-  outbox.put(('actor', agents.sac_actor_layers(model), updates))
-  published = time.monotonic()
-  while True:
-    allowed = (seen - starts) * setup.updates_per_step
-    can_update = seen >= starts and updates + chunk <= allowed
-    try:
-      # Waits for data when there is nothing to learn yet.
-      message = inbox.get_nowait() if can_update else inbox.get(timeout=1.0)
-    except queue.Empty:
-      message = None
-      if os.getppid() != parent:  # The actor was killed: keep what we have.
-        save()
-        return
-    while message is not None:
-      kind = message[0]
-      if kind == 'data':
-        _store(buffer, message[1])
-        seen += len(message[1][1])
-      elif kind == 'save':
-        save()
-        outbox.put(('saved', updates))
-      elif kind == 'stop':
-        save()
-        outbox.put(('stopped', updates))
-        return
-      try:
-        message = inbox.get_nowait()
-      except queue.Empty:
-        message = None
-    if can_update:
-      model.train(gradient_steps=chunk, batch_size=model.batch_size)
-      updates += chunk
-      now = time.monotonic()
-      if now - published >= _PUBLISH_INTERVAL:
-        outbox.put(('actor', agents.sac_actor_layers(model), updates))
-        published = now
-
-
-class Learner:
-  """The learner process, seen from the actor."""
-
-  def __init__(self, setup: LearnerSetup):
-    context = multiprocessing.get_context('spawn')
-    self._inbox = context.Queue()
-    self._outbox = context.Queue()
-    self._process = context.Process(
-      target=learner_main,
-      args=(setup, self._inbox, self._outbox),
-      name='robel_dm-learner',
-      daemon=True,
-    )
-    self._process.start()
-    self.updates = 0
-    self.actor: StochasticActor | None = None
-
-  def add(self, batch: tuple[np.ndarray, ...]) -> None:
-    self._inbox.put(('data', batch))
-
-  def poll(self) -> None:
-    """Takes the newest actor weights sent (never waits)."""
-    while True:
-      try:
-        message = self._outbox.get_nowait()
-      except queue.Empty:
-        return
-      self._handle(message)
-
-  def _handle(self, message) -> str:
-    kind = message[0]
-    if kind == 'actor':
-      self.actor = StochasticActor(message[1])
-      self.updates = message[2]
-    elif kind == 'error':
-      raise RuntimeError(f'the learner process failed: {message[1]}')
-    else:
-      self.updates = message[1]
-    return kind
-
-  def wait_for_actor(self, timeout: float = _STOP_TIMEOUT) -> 'StochasticActor':
-    """The actor's weights, waiting for the learner's first ones."""
-    deadline = time.monotonic() + timeout
-    while self.actor is None:
-      if time.monotonic() > deadline:
-        raise RuntimeError(f'the learner sent no actor within {timeout:.0f} s')
-      try:
-        self._handle(self._outbox.get(timeout=0.5))
-      except queue.Empty:
-        self.check_alive()
-    return self.actor
-
-  def check_alive(self) -> None:
-    if not self._process.is_alive():
-      self.poll()  # Its error, if it sent one.
-      raise RuntimeError(
-        f'the learner process ended (exit code {self._process.exitcode})'
-      )
-
-  def request(self, kind: str, timeout: float = _STOP_TIMEOUT) -> None:
-    """Sends ('save',) or ('stop',) and waits for the answer."""
-    self._inbox.put((kind,))
-    deadline = time.monotonic() + timeout
-    answer = {'save': 'saved', 'stop': 'stopped'}[kind]
-    while time.monotonic() < deadline:
-      try:
-        message = self._outbox.get(timeout=0.5)
-      except queue.Empty:
-        if not self._process.is_alive():
-          raise RuntimeError('the learner process ended') from None
-        continue
-      if self._handle(message) == answer:
-        return
-    raise RuntimeError(f'the learner did not {kind} within {timeout:.0f} s')
-
-  def close(self) -> None:
-    """Stops the process (it saves first if it still can)."""
-    if self._process.is_alive():
-      with contextlib.suppress(RuntimeError):  # It may have died.
-        self.request('stop')
-    self._process.join(timeout=5)
-    if self._process.is_alive():
-      self._process.terminate()
-      self._process.join(timeout=5)
 
 
 # --- The actor -------------------------------------------------------------
@@ -692,7 +420,7 @@ def train_on_robot(
     return run.history
   held = sum(len(d) for d in (data, recorded) if d is not None)
   observation_size, action_size = _sizes(config, keys)
-  setup = LearnerSetup(
+  setup = learner_lib.LearnerSetup(
     algo=config.algo,
     seed=config.seed,
     layers=config.layers,
@@ -705,7 +433,7 @@ def train_on_robot(
     resume=resume,
     updates_per_step=options.updates_per_step,
   )
-  learner = Learner(setup)
+  learner = learner_lib.Learner(setup)
   actor = _RobotRun(config, options, output, metadata, learner, log)
   try:
     for batch in (data, recorded):

@@ -29,14 +29,17 @@ from robel_dm.hardware.virtual.bus import (
 from robel_dm.hardware.virtual.servo import DEFAULT_MODEL_NUMBER, make_servos
 from robel_dm.hardware.virtual.transport import PtyBusServer
 
-# --driver values: factories of a driver for a robot configuration.
-DriverFactory = Callable[[config.RobotConfig], Driver]
+# --driver values: factories of a driver for a robot configuration and a
+# calibration file of the simulated robot (or None).
+DriverFactory = Callable[[config.RobotConfig, str | None], Driver]
 # The scene a standalone simulated robot runs: one with every motor's joint
 # (the D'Claw's includes the valve that motor 50 reads).
 _SIMULATED_SCENES = {'dclaw': 'turn_fixed', 'dkitty': 'stand_fixed'}
 
 
-def _simulated_robot(robot_config: config.RobotConfig) -> Driver:
+def _simulated_robot(
+  robot_config: config.RobotConfig, dynamics: str | None
+) -> Driver:
   # Imported here: they need MuJoCo, and the command line builds the scene.
   from robel_dm import suite  # noqa: PLC0415
   from robel_dm.hardware import sim_robot  # noqa: PLC0415
@@ -46,12 +49,13 @@ def _simulated_robot(robot_config: config.RobotConfig) -> Driver:
     _SIMULATED_SCENES[robot_config.robot],
     seed=0,
     time_limit=math.inf,
+    dynamics=dynamics,
   )
   return sim_robot.SimulatedRobot(scene, robot_config, realtime=True)
 
 
 DRIVERS: dict[str, DriverFactory] = {
-  'ideal': lambda robot_config: IdealDriver(),
+  'ideal': lambda robot_config, dynamics: IdealDriver(),
   # A MuJoCo simulation of the robot, advancing with the wall clock.
   'sim': _simulated_robot,
 }
@@ -61,6 +65,7 @@ def build_bus(
   robot_config: config.RobotConfig,
   driver: str = 'ideal',
   model_number: int = DEFAULT_MODEL_NUMBER,
+  dynamics: str | None = None,
 ) -> Bus:
   """A bus with one servo per motor of `robot_config`.
 
@@ -68,6 +73,9 @@ def build_bus(
     robot_config: the robot.
     driver: a key of DRIVERS.
     model_number: the servos' model.
+    dynamics: with driver 'sim', a calibration file of the simulated robot
+      (`robel_dm.calibration`): its gains, damping, friction, armature and
+      control delay; ROBEL's model if None.
 
   Raises:
     ValueError: for an unknown driver.
@@ -75,7 +83,9 @@ def build_bus(
   if driver not in DRIVERS:
     raise ValueError(f'unknown driver {driver!r}; known: {sorted(DRIVERS)}')
   servos = make_servos(robot_motor_ids(robot_config), model_number)
-  return Bus(servos, driver=DRIVERS[driver](robot_config))
+  if dynamics is not None and driver != 'sim':
+    raise ValueError(f'dynamics needs the sim driver, not {driver!r}')
+  return Bus(servos, driver=DRIVERS[driver](robot_config, dynamics))
 
 
 def _define_flags():
@@ -101,6 +111,12 @@ def _define_flags():
     'model_number': flags.DEFINE_integer(
       'model_number', DEFAULT_MODEL_NUMBER, 'Model number of every servo.'
     ),
+    'dynamics': flags.DEFINE_string(
+      'dynamics',
+      None,
+      'Calibration file of the simulated robot (robel_dm.calibration): '
+      'another robot of the same design.',
+    ),
   }
 
 
@@ -113,11 +129,16 @@ def _serve_until_signalled(flag_values) -> int:
   except config.ConfigError as error:
     print(f'error: {error}', file=sys.stderr)
     return 2
-  bus = build_bus(
-    robot_config,
-    flag_values['driver'].value,
-    flag_values['model_number'].value,
-  )
+  try:
+    bus = build_bus(
+      robot_config,
+      flag_values['driver'].value,
+      flag_values['model_number'].value,
+      flag_values['dynamics'].value,
+    )
+  except (ValueError, OSError) as error:
+    print(f'error: {error}', file=sys.stderr)
+    return 2
   stop = threading.Event()
   for signal_number in (signal.SIGINT, signal.SIGTERM):
     signal.signal(signal_number, lambda *_: stop.set())
