@@ -768,3 +768,27 @@ def test_command_line_serves_a_robot():
       process.kill()
       raise
   assert returncode == 0, process.stderr.read()
+
+
+def test_a_real_time_bus_answers_promptly_after_an_idle_spell(monkeypatch):
+  """A read after minutes of silence simulates at most a second of them
+  (the robot has settled), so the reply is not held past the deadline."""
+  import math  # noqa: PLC0415
+
+  from robel_dm import suite  # noqa: PLC0415
+  from robel_dm.hardware import sim_robot  # noqa: PLC0415
+
+  scene = suite.load('dclaw', 'turn_fixed', seed=0, time_limit=math.inf)
+  clock = [100.0]
+  monkeypatch.setattr(sim_robot.time, 'monotonic', lambda: clock[0])
+  robot = sim_robot.SimulatedRobot(
+    scene, config.default('dclaw'), realtime=True
+  )
+  bus = virtual.build_bus(config.default('dclaw'))
+  servos = {servo.motor_id: servo for servo in bus.servos}
+  clock[0] += 600.0  # Ten idle minutes.
+  robot.on_read(servos, [10])
+  assert robot.physics.data.time == pytest.approx(1.0)
+  clock[0] += 0.05  # A control period later: real time again.
+  robot.on_read(servos, [10])
+  assert robot.physics.data.time == pytest.approx(1.05)

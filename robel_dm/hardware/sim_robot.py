@@ -23,6 +23,9 @@ from robel_dm.hardware import control_table as table
 _AUXILIARY_KP = 2.0
 _AUXILIARY_KV = 0.1
 
+# Simulated time one read catches up at most, s (see `on_read`).
+_MAX_CATCH_UP = 1.0
+
 
 class SimulatedRobot:
   """Simulates a task's robot for the virtual bus (thread-safe)."""
@@ -144,7 +147,10 @@ class SimulatedRobot:
     with self._lock:
       if self._realtime:
         now = time.monotonic()
-        self._advance_locked(now - self._last_wall_time)
+        # After an idle spell the robot has long settled: simulating all of
+        # it would hold the reply past the client's deadline.
+        idle = now - self._last_wall_time
+        self._advance_locked(min(idle, _MAX_CATCH_UP))
         self._last_wall_time = now
       for motor_id in ids:
         if motor_id not in self._motors:
