@@ -165,7 +165,8 @@ def collect(output: pathlib.Path, devices: dict[str, str], args) -> list:
                         if row['timing']),
       'faults': progress[-1]['faults'],
       'wall_minutes': log[-1]['wall_time'] / 60,
-      'curve': [[row['env_steps'], row['success_rate']] for row in log],
+      'curve': [[row['env_steps'], row['success_rate'], row['mean_score']]
+                for row in log],
     })  # fmt: skip
   return rows
 
@@ -190,6 +191,29 @@ def report(output: pathlib.Path, rows: list, killed: dict) -> None:
       f'killed {killed["robot"]} with SIGKILL: {killed["recorded_steps"]} '
       f'steps recorded, the last {killed["seconds_not_recorded"]:.2f} s not'
     )
+
+
+def plot(rows: list, path: pathlib.Path) -> None:
+  """Success and mean score of each robot's evaluations by robot step."""
+  import matplotlib  # noqa: PLC0415
+
+  matplotlib.use('Agg')
+  from matplotlib import pyplot  # noqa: PLC0415
+
+  figure, axes = pyplot.subplots(1, 2, figsize=(9, 3.4))
+  for row in rows:
+    steps, success, score = np.asarray(row['curve'], float).T
+    axes[0].plot(steps, success, marker='o', label=row['robot'])
+    axes[1].plot(steps, score, marker='o', label=row['robot'])
+  for axis, name in zip(axes, ('success rate', 'mean score'), strict=True):
+    axis.set_xlabel('robot steps (training and evaluation)')
+    axis.set_ylabel(name)
+    axis.set_ylim(0, 1.05)
+    axis.grid(alpha=0.3)
+  axes[0].legend(loc='upper left')
+  figure.suptitle("D'Claw Pose learned on virtual buses in real time")
+  figure.tight_layout()
+  figure.savefig(path, dpi=100)
 
 
 def main() -> int:
@@ -220,7 +244,9 @@ def main() -> int:
     for run in runs.values():
       run.wait()
     devices = {name: device for name, (_, device) in buses.items()}
-    report(output, collect(output, devices, args), killed)
+    rows = collect(output, devices, args)
+    report(output, rows, killed)
+    plot(rows, output / 'curves.png')
   finally:
     for run in runs.values():
       if run.poll() is None:

@@ -77,8 +77,11 @@ def test_a_run_learns_on_the_bus_records_every_step_and_resumes(tmp_path):
   episodes = recording.read(tmp_path / robot.RECORDING)
   purposes = {e.metadata['purpose'] for e in episodes}
   assert purposes == {'training', 'evaluation'}
-  # The learner updated the networks and the actor used them.
-  assert progress[-1]['updates'] > 0
+  # The learner made one update per transition after the first 500 (it
+  # catches up before it stops), in batches of 8.
+  counts = json.loads((tmp_path / 'checkpoint.json').read_text())
+  assert counts['transitions'] == steps
+  assert counts['updates'] == (steps - 500) // 8 * 8
   timing = progress[-1]['timing']
   assert timing['steps'] == progress[-1]['steps'] and timing['late_steps'] == 0
   assert 'period p50 50.0 ms' in lines[-2] or 'period p50 50.0 ms' in lines[-3]

@@ -30,6 +30,8 @@ from robel_dm.learning import train as train_lib
 _PUBLISH_INTERVAL = 0.2
 # The learner's scheduling priority below the actor's (Unix niceness).
 _LEARNER_NICENESS = 10
+# Updates a stopping learner still makes to catch up, at most.
+_STOP_UPDATES = 2_000
 # How long a stopping learner may take to save, s.
 _STOP_TIMEOUT = 120.0
 
@@ -194,6 +196,12 @@ def _learn(model, setup, chunk, starts, checkpoint, inbox, outbox) -> None:
         save()
         outbox.put(('saved', updates))
       elif kind == 'stop':
+        # The updates the transitions so far allow, then save: a stopped
+        # run's networks have learned from all it saw (a bounded wait).
+        backlog = int((seen - starts) * setup.updates_per_step) - updates
+        for _ in range(min(max(backlog, 0), _STOP_UPDATES) // chunk):
+          model.train(gradient_steps=chunk, batch_size=model.batch_size)
+          updates += chunk
         save()
         outbox.put(('stopped', updates))
         return
