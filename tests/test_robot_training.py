@@ -20,7 +20,7 @@ pytest.importorskip('sbx')
 pytest.importorskip('dynamixel_sdk')
 
 from robel_dm import recording  # noqa: E402
-from robel_dm.learning import robot  # noqa: E402
+from robel_dm.learning import learner, robot  # noqa: E402
 from robel_dm.learning import train as train_lib  # noqa: E402
 from tests import child_signals  # noqa: E402
 
@@ -256,3 +256,54 @@ def test_the_command_line_refuses_robot_flags_without_a_robot(tmp_path):
   assert result.stderr.strip().splitlines()[-1] == (
     'error: --hours needs --device_path (it is about a robot)'
   )
+
+
+class _FakeLearner:
+  """Stands in for the learner process: keeps what the actor sends."""
+
+  def __init__(self, setup):
+    rng = np.random.default_rng(0)
+    sizes = [setup.observation_size, 8, setup.action_size, setup.action_size]
+    self.actor = learner.StochasticActor(
+      [(rng.normal(size=(8, sizes[0])), np.zeros(8)),
+       (rng.normal(size=(sizes[2], 8)), np.zeros(sizes[2])),
+       (rng.normal(size=(sizes[3], 8)), np.zeros(sizes[3]))]
+    )  # fmt: skip
+    self.updates, self.batches = 0, []
+    _FakeLearner.last = self
+
+  def add(self, batch):
+    self.batches.append(batch)
+
+  def poll(self):
+    pass
+
+  def wait_for_actor(self):
+    return self.actor
+
+  def check_alive(self):
+    pass
+
+  def request(self, kind):
+    pass
+
+  def close(self):
+    pass
+
+
+def test_the_agent_learns_from_the_penalized_reward(tmp_path, monkeypatch):
+  monkeypatch.setattr(learner, 'Learner', _FakeLearner)
+  config = CONFIG.__class__(
+    **{**CONFIG.__dict__, 'steps': 160, 'safety_penalty': 2.0}
+  )
+  robot.train_on_robot(config, VIRTUAL, tmp_path, log=lambda line: None)
+  learned = np.concatenate([batch[2] for batch in _FakeLearner.last.batches])
+  rows = []
+  for episode in recording.read(tmp_path / robot.RECORDING):
+    safety = np.asarray(episode.steps['observation.safety'])[1:].sum(axis=1)
+    rows.append(np.asarray(episode.steps['next.reward'])[1:] - 2.0 * safety)
+  np.testing.assert_allclose(learned, np.concatenate(rows), rtol=1e-5)
+  assert (np.concatenate(rows) != np.concatenate(
+    [np.asarray(e.steps['next.reward'])[1:]
+     for e in recording.read(tmp_path / robot.RECORDING)]
+  )).any()  # fmt: skip

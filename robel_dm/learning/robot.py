@@ -242,11 +242,15 @@ class _RobotRun:
         break
       next_observation = _flatten(timestep.observation, self.keys)
       terminal = timestep.last() and timestep.discount == 0.0
+      safety = timestep.observation['safety']
+      # What the agent learns from (--safety_penalty); the logs keep
+      # ROBEL's reward.
+      reward = timestep.reward - self.config.safety_penalty * safety.sum()
       self.learner.add(
         (
           observation[None],
           np.asarray(action, np.float32)[None],
-          np.float32([timestep.reward]),
+          np.float32([reward]),
           next_observation[None],
           np.array([terminal]),
         )
@@ -255,7 +259,7 @@ class _RobotRun:
       self.steps += 1
       result.steps += 1
       result.reward += float(timestep.reward)
-      result.violations += timestep.observation['safety']
+      result.violations += safety
       result.success = bool(timestep.observation['success'])
       result.score = float(timestep.observation['score'])
       limit = self.options.max_violations
@@ -342,17 +346,16 @@ def _recorded(output: pathlib.Path, config, keys) -> demos.Transitions | None:
   directory = output / RECORDING
   if not (directory / 'meta').is_dir():
     return None
-  try:
-    return demos.load(
-      directory,
-      config.domain,
-      config.task,
-      keys,
-      config.task_kwargs,
-      complete_only=False,
-    )
-  except demos.DemoError:
-    return None
+  if not any(len(episode) > 1 for episode in recording.read(directory)):
+    return None  # Killed before its first step was flushed.
+  return demos.load(
+    directory,
+    config.domain,
+    config.task,
+    keys,
+    config.task_kwargs,
+    complete_only=False,
+  )
 
 
 def train_on_robot(
