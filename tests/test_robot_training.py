@@ -307,3 +307,43 @@ def test_the_agent_learns_from_the_penalized_reward(tmp_path, monkeypatch):
     [np.asarray(e.steps['next.reward'])[1:]
      for e in recording.read(tmp_path / robot.RECORDING)]
   )).any()  # fmt: skip
+
+
+@pytest.fixture(scope='module')
+def demonstrations(tmp_path_factory):
+  """Two episodes of Pose's scripted controller, recorded in simulation."""
+  from robel_dm import evaluate  # noqa: PLC0415
+
+  directory = tmp_path_factory.mktemp('demos')
+  evaluate.evaluate(
+    'dclaw', 'pose_fixed', 2, policy='reference', record=str(directory)
+  )
+  return str(directory)
+
+
+def test_demonstrations_seed_the_replay_buffer_on_a_robot(
+  tmp_path, monkeypatch, demonstrations
+):
+  monkeypatch.setattr(learner, 'Learner', _FakeLearner)
+  config = CONFIG.__class__(
+    **{**CONFIG.__dict__, 'algo': 'sac_demos', 'steps': 80,
+       'demos': (demonstrations,), 'demo_episodes': 2}
+  )  # fmt: skip
+  robot.train_on_robot(config, VIRTUAL, tmp_path, log=lambda line: None)
+  first = _FakeLearner.last.batches[0]
+  assert len(first[1]) == 160  # The demonstrations, before any robot step.
+  assert sum(len(batch[1]) for batch in _FakeLearner.last.batches) >= 240
+
+
+def test_behaviour_cloning_uses_the_robot_to_evaluate(tmp_path, demonstrations):
+  config = CONFIG.__class__(
+    **{**CONFIG.__dict__, 'algo': 'bc', 'steps': 20,
+       'demos': (demonstrations,), 'demo_episodes': 2}
+  )  # fmt: skip
+  history = robot.train_on_robot(
+    config, VIRTUAL, tmp_path, log=lambda line: None
+  )
+  assert len(history) == 1 and history[0]['on_robot']
+  assert history[0]['epoch'] == 20
+  assert (tmp_path / train_lib.BEST_POLICY).is_file()
+  assert _recorded_steps(tmp_path / robot.RECORDING) == 80
