@@ -296,7 +296,13 @@ class Run:
     config = self.config
     self.log(
       f'{config.domain}/{config.task} {config.algo} seed {config.seed}: '
-      f'{row["env_steps"]:>8d} steps {row["wall_time"]:7.0f} s: success '
+      # Behaviour cloning counts epochs, the others env steps.
+      + (
+        f'{row["epoch"]:>8d} epochs'
+        if 'epoch' in row
+        else f'{row["env_steps"]:>8d} steps'
+      )
+      + f' {row["wall_time"]:7.0f} s: success '
       f'{row["success_rate"]:.2f} score {row["mean_score"]:.3f} return '
       f'{row["mean_return"]:9.1f} violations/episode '
       + ' '.join(f'{k} {v:.1f}' for k, v in row['safety'].items())
