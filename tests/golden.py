@@ -7,7 +7,8 @@ around standing (uniform ones topple it within about 15 steps). Every
 step's observations (the timestep's and every task observable, enabled or
 not), reward, discount, step type and reward terms are recorded; the file
 keeps a SHA-256 digest of each quantity's episode array (bit-for-bit
-identity) and its sum (to see the size of a difference).
+identity) and its sum (to see the size of a difference), and a short digest
+of every step's quantities together (to find the first step that differs).
 `tests/test_golden.py` compares a fresh run with the file.
 
 Regenerate only after a deliberate change of behaviour, and say why in the
@@ -57,6 +58,18 @@ def _digest(values: list) -> dict:
   }
 
 
+def _step_digests(steps: dict[str, list]) -> list[str]:
+  """Per step, 12 hex digits of the SHA-256 of all its quantities."""
+  digests = []
+  for index in range(len(steps['reward'])):
+    hasher = hashlib.sha256()
+    for key in sorted(steps):
+      value = np.ascontiguousarray(np.asarray(steps[key][index]))
+      hasher.update(key.encode() + str(value.dtype).encode() + value.tobytes())
+    digests.append(hasher.hexdigest()[:12])
+  return digests
+
+
 def record(domain: str, task: str, task_kwargs: dict) -> list[dict]:
   """Runs the configuration's episodes; returns per episode the digests."""
   env = suite.load(domain, task, seed=17, task_kwargs=dict(task_kwargs))
@@ -94,6 +107,7 @@ def record(domain: str, task: str, task_kwargs: dict) -> list[dict]:
         'steps': len(steps['reward']),
         'return': float(sum(steps['reward'])),
         'digests': {key: _digest(values) for key, values in steps.items()},
+        'step_digests': _step_digests(steps),
       }
     )
   env.close()

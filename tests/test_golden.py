@@ -1,8 +1,8 @@
 """Every task reproduces its golden trajectories bit for bit (see golden.py).
 
-A failure names the quantities that changed and by how much (their episode
-sums). If the change is deliberate, regenerate the file with
-`python tests/golden.py` and say why in the commit.
+A failure names the first step that differs and the quantities that
+changed, with their episode sums. If the change is deliberate, regenerate
+the file with `python tests/golden.py` and say why in the commit.
 """
 
 import json
@@ -25,11 +25,22 @@ def test_trajectories_match_bit_for_bit(config):
   expected = _GOLDEN[golden.name(*config)]
   actual = golden.record(*config)
   for episode, (want, got) in enumerate(zip(expected, actual, strict=True)):
-    assert got['steps'] == want['steps'], f'episode {episode} length'
-    assert sorted(got['digests']) == sorted(want['digests'])
+    first = next(
+      (
+        step
+        for step, (a, b) in enumerate(
+          zip(want['step_digests'], got['step_digests'], strict=False)
+        )
+        if a != b
+      ),
+      None,
+    )
+    where = f'episode {episode}, first different at step {first}'
+    assert got['steps'] == want['steps'], f'{where}: length'
+    assert sorted(got['digests']) == sorted(want['digests']), where
     changed = {
       key: (want['digests'][key]['sum'], value['sum'])
       for key, value in got['digests'].items()
       if value['sha256'] != want['digests'][key]['sha256']
     }
-    assert not changed, f'episode {episode}: (golden sum, now) {changed}'
+    assert not changed, f'{where}: (golden sum, now) {changed}'
