@@ -30,6 +30,9 @@ composer.Environment
     _observation_updater, _legacy_step, _delayed_observation_padding,
     _strip_singleton_obs_buffer_dim: the state composer's own `step` and
     `_recompile_physics` use, which their replacements here use the same way.
+mjcf.Physics
+  _contexts: read by `existing_render_contexts` (the public `contexts`
+    creates a GL context, which crashes on a headless machine).
 observation.Updater
   _enabled_list, _enabled_structure, _is_nested, _strip_singleton_buffer_dim:
     read to decide whether the lean path applies and to name its outputs.
@@ -50,6 +53,12 @@ import numpy as np
 _SUBSTEP_HOOKS = ('before_substep', 'after_substep')
 
 PhysicsFactory = Callable[[mjcf.RootElement], mjcf.Physics]
+
+
+def existing_render_contexts(physics):
+  """The physics' rendering contexts if a renderer made them, else None
+  (never creates one)."""
+  return physics._contexts  # noqa: SLF001
 
 
 class CachedArray(observable.Observable):

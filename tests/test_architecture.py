@@ -6,6 +6,7 @@
 * No module of the package is longer than 600 lines.
 """
 
+import ast
 import pathlib
 import re
 import shutil
@@ -84,19 +85,40 @@ def test_import_layers_catch_a_task_importing_the_hardware_layer(tmp_path):
   assert 'robel_dm.tasks.base -> robel_dm.hardware.physics' in result.stdout
 
 
+def _foreign_private_reads(path: pathlib.Path) -> list[str]:
+  """Every `x._name` in `path` where x is not `self` or `cls`: a private
+  name read from another object (dunder names aside)."""
+  found = []
+  for node in ast.walk(ast.parse(path.read_text())):
+    if (
+      isinstance(node, ast.Attribute)
+      and node.attr.startswith('_')
+      and not node.attr.startswith('__')
+      and not (isinstance(node.value, ast.Name) and node.value.id in _OWN)
+    ):
+      found.append(f'line {node.lineno}: {ast.unparse(node)}')
+  return found
+
+
+_OWN = ('self', 'cls')
+
+
 @pytest.mark.parametrize(
   'module',
   sorted(p for p in _PACKAGE.rglob('*.py') if p != _ADAPTER),
   ids=lambda p: str(p.relative_to(_ROOT)),
 )
-def test_only_the_adapter_uses_dm_control_private_names(module):
-  text = module.read_text()
-  used = [
-    name
-    for name in _DM_CONTROL_PRIVATE
-    if re.search(rf'\.{name}\b|def {name}\b', text)
-  ]
-  assert not used, f'{module.name} uses dm_control private names {used}'
+def test_only_the_adapter_reads_other_objects_private_names(module):
+  # A rule, not a list: outside the dm_control adapter no code reads a
+  # private name of another object (a dm_control or MuJoCo one above all).
+  found = _foreign_private_reads(module)
+  assert not found, f'{module.name} reads private names: {found}'
+
+
+def test_the_private_name_rule_catches_a_physics_internal(tmp_path):
+  probe = tmp_path / 'probe.py'
+  probe.write_text('def f(physics):\n  return physics._contexts\n')
+  assert _foreign_private_reads(probe) == ['line 2: physics._contexts']
 
 
 def test_the_adapter_documents_every_private_name_it_uses():

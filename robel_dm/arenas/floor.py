@@ -4,7 +4,7 @@ from dm_control import composer, mjcf
 import mujoco
 import numpy as np
 
-from robel_dm import assets, randomization
+from robel_dm import assets, environment, randomization
 
 # ROBEL's terrain: every heightfield cell is drawn from this range, m.
 TERRAIN_HEIGHT = randomization.Range(0.0, 0.05)
@@ -64,10 +64,9 @@ class KittyFloor(composer.Arena):
     if self._hfield is None:
       return
     self._heights[:] = TERRAIN_HEIGHT.sample(random_state, self._heights.size)
-    # A renderer keeps its own copy of the heightfield. Only refresh one that
-    # already exists: `physics.contexts` would create a GL context, which
-    # crashes on a headless machine.
-    contexts = physics._contexts  # noqa: SLF001
+    # A renderer keeps its own copy of the heightfield: refresh it if one
+    # exists (without making one).
+    contexts = environment.existing_render_contexts(physics)
     if contexts:
       with contexts.gl.make_current() as ctx:
         ctx.call(

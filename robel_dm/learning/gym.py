@@ -195,7 +195,7 @@ class RobelEnv(gymnasium.Env):
     # rejected, with its message, before the environment sees the action
     # (a plain float conversion would let complex numbers, numeric strings
     # and objects through).
-    action = self._env.task._validated_action(action)  # noqa: SLF001
+    action = self._env.task.validated_action(action)
     timestep = self._env.step(action)
     self._timestep = timestep
     last = timestep.last()

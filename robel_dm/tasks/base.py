@@ -401,7 +401,7 @@ class RobelTask(composer.Task):
 
   def before_step(self, physics, action, random_state) -> None:
     del physics, random_state
-    self._last_action[:] = self._validated_action(action)
+    self._last_action[:] = self.validated_action(action)
     self._action_map.apply(self._last_action)
 
   def after_step(self, physics, random_state) -> None:
@@ -488,7 +488,13 @@ class RobelTask(composer.Task):
       over = np.abs(self._current) > self._max_safe_current
       self._safety[2] = count(over)
 
-  def _validated_action(self, action) -> np.ndarray:
+  def validated_action(self, action) -> np.ndarray:
+    """`action` as the task takes it (float64, in range).
+
+    Raises:
+      ValueError: naming what is wrong with it (dtype, shape, a value out
+        of [-1, 1] or not finite), as `step` would.
+    """
     action = np.asarray(action)
     if action.dtype != np.float64:
       if action.dtype.kind not in 'biuf':  # Complex, strings, objects.

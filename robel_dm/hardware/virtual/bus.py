@@ -183,8 +183,12 @@ class Bus:
         self.stats['crc_errors'] += 1
         replies = self._crc_error(packet, baud_rate)
       else:
-        handler = self._HANDLERS.get(packet.instruction, Bus._unknown)
-        replies = handler(self, packet, baud_rate)
+        handler = self._HANDLERS.get(packet.instruction)
+        replies = (
+          self._unknown(packet, baud_rate)
+          if handler is None
+          else handler(self, packet, baud_rate)
+        )
       if isinstance(replies, bytes):
         return replies
       return b''.join(self._encode(reply) for reply in replies)
