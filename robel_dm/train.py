@@ -52,6 +52,11 @@ def _define_flags() -> None:
     None,
     'End early once an evaluation reaches this success rate.',
   )
+  flags.DEFINE_integer(
+    'stop_streak',
+    1,
+    'With --stop_at_success: evaluations in a row that must reach it.',
+  )
   flags.DEFINE_list(
     'from_recording',
     [],
@@ -134,6 +139,7 @@ def main(argv):
       demos=tuple(FLAGS.demos),
       demo_episodes=FLAGS.demo_episodes,
       stop_at_success=FLAGS.stop_at_success,
+      stop_streak=FLAGS.stop_streak,
       from_recording=tuple(FLAGS.from_recording),
     )
     log = lambda line: print(line, flush=True)  # noqa: E731

@@ -48,6 +48,31 @@ def test_the_plan_covers_every_task_seed_and_kind_of_agent():
 def test_the_table_stops_a_run_once_it_is_solved():
   config = baselines.Run('dclaw', 'turn_fixed', 'sac', 1).config()
   assert config.stop_at_success == baselines.PLAN['solved']
+  assert config.stop_streak == 1  # One deterministic episode is the task.
+  random = baselines.Run('dclaw', 'turn_random', 'sac', 1).config()
+  assert random.stop_streak == 2  # A sample of 10 episodes: twice.
+
+
+@pytest.mark.parametrize(
+  'rates, streak, stops',
+  [
+    ([0.0, 0.9], 1, True),
+    ([0.0, 0.9], 2, False),
+    ([0.9, 0.7, 0.9], 2, False),
+    ([0.7, 0.8, 0.9], 2, True),
+  ],
+)
+def test_a_run_stops_after_a_streak_of_solved_evaluations(
+  tmp_path, rates, streak, stops
+):
+  from robel_dm.learning import train  # noqa: PLC0415
+
+  config = train.RunConfig(
+    'dclaw', 'pose_random', stop_at_success=0.8, stop_streak=streak
+  )
+  run = train.Run(tmp_path, config, log=lambda line: None)
+  run.history = [{'success_rate': rate} for rate in rates]
+  assert run.solved(run.history[-1]) == stops
 
 
 @pytest.fixture

@@ -96,6 +96,9 @@ class Run:
       demos=demos,
       demo_episodes=PLAN['demo_episodes'],
       stop_at_success=PLAN['solved'] if PLAN['stop_when_solved'] else None,
+      # A Fixed task's evaluation is one deterministic episode; a Random
+      # one's, a sample: it must hold the rate over more than one.
+      stop_streak=1 if self.fixed else PLAN['stop_streak_random'],
     )
 
 

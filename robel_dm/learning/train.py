@@ -48,7 +48,13 @@ METADATA = 'metadata.json'
 # Evaluation episodes are seeded from here on, training ones below it.
 EVAL_SEED_OFFSET = 1_000_000
 # What --resume may change: the budget and how often it is evaluated.
-RESUMABLE_CHANGES = ('steps', 'eval_every', 'eval_episodes', 'stop_at_success')
+RESUMABLE_CHANGES = (
+  'steps',
+  'eval_every',
+  'eval_episodes',
+  'stop_at_success',
+  'stop_streak',
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,8 +75,9 @@ class RunConfig:
     hidden: hidden layer sizes; the agent's own if empty.
     demos: recording directories of demonstrations (bc, sac_demos).
     demo_episodes: how many demonstration episodes to use.
-    stop_at_success: end the run early once an evaluation's success rate
-      reaches this (never if None).
+    stop_at_success: end the run early once `stop_streak` evaluations in a
+      row reach this success rate (never if None).
+    stop_streak: see `stop_at_success`.
     from_recording: recordings (of this task, simulated or on a robot,
       complete episodes or not) whose every transition starts the replay
       buffer of an off-policy agent, or joins behaviour cloning's data.
@@ -90,6 +97,7 @@ class RunConfig:
   demos: tuple[str, ...] = ()
   demo_episodes: int = 20
   stop_at_success: float | None = None
+  stop_streak: int = 1
   from_recording: tuple[str, ...] = ()
 
   @property
@@ -103,7 +111,13 @@ class RunConfig:
   def check(self) -> None:
     """Raises ValueError naming the first bad setting."""
     agent = self.agent
-    for name in ('steps', 'num_envs', 'eval_every', 'eval_episodes'):
+    for name in (
+      'steps',
+      'num_envs',
+      'eval_every',
+      'eval_episodes',
+      'stop_streak',
+    ):
       if getattr(self, name) < 1:
         raise ValueError(f'{name} must be >= 1, got {getattr(self, name)}')
     if self.safety_penalty < 0 or not np.isfinite(self.safety_penalty):
@@ -252,9 +266,15 @@ class Run:
       self._evaluating = self.history[-1].get('eval_time', 0.0)
 
   def solved(self, row: dict) -> bool:
-    """Whether `row` ends the run early (see `stop_at_success`)."""
-    target = self.config.stop_at_success
-    return target is not None and row['success_rate'] >= target
+    """Whether `row`, the last evaluation, ends the run early (see
+    `stop_at_success`)."""
+    target, streak = self.config.stop_at_success, self.config.stop_streak
+    if target is None or row['success_rate'] < target:
+      return False
+    recent = self.history[-streak:]
+    return len(recent) == streak and all(
+      r['success_rate'] >= target for r in recent
+    )
 
   def start_clocks(self) -> None:
     self._wall -= time.perf_counter()
@@ -338,8 +358,9 @@ def check_resume(
   if differences:
     raise ValueError(
       f'--resume: {output} was trained with other settings; pass the same '
-      'ones (only --steps, --eval_every, --eval_episodes and '
-      '--stop_at_success may change): ' + '; '.join(differences)
+      'ones (only --steps, --eval_every, --eval_episodes, '
+      '--stop_at_success and --stop_streak may change): '
+      + '; '.join(differences)
     )
 
 
