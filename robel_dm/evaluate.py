@@ -13,7 +13,6 @@ import json
 import math
 import os
 import sys
-import time
 from typing import Any
 
 from absl import app, flags, logging
@@ -27,6 +26,7 @@ from robel_dm import (
   provenance,
   recording,
   result_table,
+  rollout,
   suite,
   video,
 )
@@ -63,51 +63,6 @@ def parse_task_kwargs(text: str) -> dict[str, Any]:
     except json.JSONDecodeError:
       kwargs[key.strip()] = value.strip()
   return kwargs
-
-
-def run_episode(
-  env, act: policies.Policy, episode_seed: int | None, on_step=None
-) -> tuple[dict[str, Any], int, float]:
-  """Runs one episode from a seeded reset.
-
-  Args:
-    env: the environment.
-    act: the policy.
-    episode_seed: the reset's seed; None continues the random state.
-    on_step: called after the reset and after every step (e.g. to add a
-      video frame); its time is not counted as step time.
-
-  Returns:
-    Its record, its number of steps and the seconds spent in `env.step`.
-  """
-  if episode_seed is not None:
-    env.random_state.seed(episode_seed)
-  timestep = env.reset()
-  if on_step is not None:
-    on_step()
-  episode_return, scores = 0.0, []
-  safety = np.zeros(len(base.SAFETY_FIELDS), dtype=np.int64)
-  step_seconds = 0.0
-  while not timestep.last():
-    action = act(timestep)
-    start = time.perf_counter()
-    timestep = env.step(action)
-    step_seconds += time.perf_counter() - start
-    if on_step is not None:
-      on_step()
-    episode_return += timestep.reward
-    scores.append(float(timestep.observation[base.SCORE]))
-    safety += timestep.observation[base.SAFETY]
-  record = {
-    'seed': episode_seed,
-    'return': episode_return,
-    'mean_score': float(np.mean(scores)),
-    'final_score': scores[-1],
-    'success': bool(timestep.observation[base.SUCCESS]),
-    'steps': len(scores),
-    'safety': dict(zip(base.SAFETY_FIELDS, safety.tolist(), strict=True)),
-  }
-  return record, len(scores), step_seconds
 
 
 def summarize(
@@ -316,7 +271,9 @@ def evaluate(
       if policy == 'random':  # Each episode's actions from its own seed.
         act = policies.make_policy(policy, env, episode_seed)
       try:
-        record, steps, seconds = run_episode(env, act, episode_seed, on_step)
+        record, steps, seconds = rollout.run_episode(
+          env, act, episode_seed, on_step
+        )
       finally:
         if writer is not None:
           writer.close()

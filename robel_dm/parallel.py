@@ -13,7 +13,7 @@ import multiprocessing
 import os
 from typing import Any
 
-from robel_dm import evaluate, policies, suite
+from robel_dm import policies, rollout, suite
 
 # Each worker process keeps its environments and policies between episodes.
 _WORKER_CACHE: dict = {}
@@ -31,7 +31,7 @@ def worker_episode(domain, task, task_kwargs, policy, episode_seed):
   env, act = _WORKER_CACHE[key]
   if policy == 'random':
     act = policies.make_policy(policy, env, episode_seed)
-  return evaluate.run_episode(env, act, episode_seed)
+  return rollout.run_episode(env, act, episode_seed)
 
 
 def local_episodes(domain, task, task_kwargs, policy, seed, count, workers):
