@@ -9,7 +9,8 @@ import pytest
 pytest.importorskip('sbx')
 
 from robel_dm import suite  # noqa: E402
-from robel_dm.learning import agents, baselines, report  # noqa: E402
+from robel_dm.learning import agents, baselines  # noqa: E402
+from robel_dm.learning.baselines import cli, report  # noqa: E402
 
 FIELDS = {'domain', 'task', 'task_kwargs', 'algo', 'seed', 'env_steps',
           'success', 'score', 'steps_to_80', 'violations', 'wall_minutes',
@@ -160,7 +161,7 @@ def test_a_recorded_run_is_not_trained_again_without_its_folder(sandbox):
 def test_a_queue_takes_its_share_and_bad_selections_are_refused(sandbox):
   with pytest.raises(ValueError, match='no run of the table matches'):
     baselines.select('nothing_*')
-  assert baselines.main(['train', '--queue=2', '--queues=2']) == 2
+  assert cli.main(['train', '--queue=2', '--queues=2']) == 2
 
 
 def test_the_table_fans_out_over_ray(sandbox):

@@ -297,7 +297,7 @@ def test_the_agent_learns_from_the_penalized_reward(tmp_path, monkeypatch):
     **{**CONFIG.__dict__, 'steps': 160, 'safety_penalty': 2.0}
   )
   robot.train_on_robot(config, VIRTUAL, tmp_path, log=lambda line: None)
-  learned = np.concatenate([batch[2] for batch in _FakeLearner.last.batches])
+  learned = np.concatenate([b.rewards for b in _FakeLearner.last.batches])
   rows = []
   for episode in recording.read(tmp_path / robot.RECORDING):
     safety = np.asarray(episode.steps['observation.safety'])[1:].sum(axis=1)
@@ -331,8 +331,8 @@ def test_demonstrations_seed_the_replay_buffer_on_a_robot(
   )  # fmt: skip
   robot.train_on_robot(config, VIRTUAL, tmp_path, log=lambda line: None)
   first = _FakeLearner.last.batches[0]
-  assert len(first[1]) == 160  # The demonstrations, before any robot step.
-  assert sum(len(batch[1]) for batch in _FakeLearner.last.batches) >= 240
+  assert len(first) == 160  # The demonstrations, before any robot step.
+  assert sum(len(batch) for batch in _FakeLearner.last.batches) >= 240
 
 
 def test_behaviour_cloning_uses_the_robot_to_evaluate(tmp_path, demonstrations):

@@ -23,8 +23,7 @@ import gymnasium
 import numpy as np
 
 from robel_dm import policies
-from robel_dm.learning import agents
-from robel_dm.learning import train as train_lib
+from robel_dm.learning import agents, demos, replay
 
 # The learner sends actor weights at most this often, s.
 _PUBLISH_INTERVAL = 0.2
@@ -102,26 +101,10 @@ class _Spaces(gymnasium.Env):
     raise NotImplementedError('the learner never steps an environment')
 
 
-def _store(buffer, batch: tuple[np.ndarray, ...]) -> None:
-  """Appends transitions (observations, actions, rewards, next
-  observations, terminals) to an SB3 replay buffer; when it is full the
-  oldest go first, as SB3's own `add` does."""
-  observations, actions, rewards, next_observations, terminals = batch
-  rows = (buffer.pos + np.arange(len(actions))) % buffer.buffer_size
-  buffer.observations[rows, 0] = observations
-  buffer.next_observations[rows, 0] = next_observations
-  buffer.actions[rows, 0] = actions
-  buffer.rewards[rows, 0] = rewards
-  buffer.dones[rows, 0] = terminals
-  end = buffer.pos + len(actions)
-  buffer.full = buffer.full or end >= buffer.buffer_size
-  buffer.pos = end % buffer.buffer_size
-
-
 def learner_main(setup: LearnerSetup, inbox, outbox) -> None:
   """The learner process: replay buffer in, actor weights out.
 
-  Messages in: ('data', batch) transitions to store; ('save',) write the
+  Messages in: ('data', demos.Transitions) to store; ('save',) write the
   checkpoint; ('stop',) save and end. Out: ('actor', layers, updates),
   ('saved', updates), ('stopped', updates), ('error', text).
   """
@@ -147,7 +130,7 @@ def learner_main(setup: LearnerSetup, inbox, outbox) -> None:
         agent, env, setup.seed, setup.layers, setup.buffer_size
       )
     # A loaded model's buffer is empty: the recording refills it.
-    train_lib.grow_replay_buffer(model, setup.buffer_size)
+    replay.grow(model, setup.buffer_size)
     model.set_logger(Logger(folder=None, output_formats=[]))
     chunk = int(model.gradient_steps)
     starts = int(model.learning_starts)
@@ -190,8 +173,8 @@ def _learn(model, setup, chunk, starts, checkpoint, inbox, outbox) -> None:
     while message is not None:
       kind = message[0]
       if kind == 'data':
-        _store(buffer, message[1])
-        seen += len(message[1][1])
+        replay.store(buffer, message[1])
+        seen += len(message[1])
       elif kind == 'save':
         save()
         outbox.put(('saved', updates))
@@ -235,8 +218,8 @@ class Learner:
     self.updates = 0
     self.actor: StochasticActor | None = None
 
-  def add(self, batch: tuple[np.ndarray, ...]) -> None:
-    self._inbox.put(('data', batch))
+  def add(self, transitions: demos.Transitions) -> None:
+    self._inbox.put(('data', transitions))
 
   def poll(self) -> None:
     """Takes the newest actor weights sent (never waits)."""

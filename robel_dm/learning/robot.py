@@ -247,12 +247,13 @@ class _RobotRun:
       # ROBEL's reward.
       reward = timestep.reward - self.config.safety_penalty * safety.sum()
       self.learner.add(
-        (
-          observation[None],
-          np.asarray(action, np.float32)[None],
-          np.float32([reward]),
-          next_observation[None],
-          np.array([terminal]),
+        demos.Transitions(
+          observations=observation[None],
+          actions=np.asarray(action, np.float32)[None],
+          rewards=np.float32([reward]),
+          next_observations=next_observation[None],
+          terminals=np.array([terminal]),
+          episodes=0,
         )
       )
       observation = next_observation
@@ -441,15 +442,7 @@ def train_on_robot(
   try:
     for batch in (data, recorded):
       if batch is not None:
-        learner.add(
-          (
-            batch.observations,
-            batch.actions,
-            batch.rewards,
-            batch.next_observations,
-            batch.terminals,
-          )
-        )
+        learner.add(batch)
     if recorded is not None:
       actor.steps = len(recorded)
       actor.episodes = recorded.episodes

@@ -34,7 +34,7 @@ import gymnasium
 import numpy as np
 
 from robel_dm import evaluate, policies, suite
-from robel_dm.learning import agents, curves, demos
+from robel_dm.learning import agents, curves, demos, replay
 
 CHECKPOINT = 'checkpoint.zip'
 REPLAY_BUFFER = 'replay_buffer.pkl'
@@ -373,35 +373,6 @@ def _normalized(config: RunConfig, name: str):
   return value
 
 
-def grow_replay_buffer(model, size: int) -> None:
-  """Gives a loaded replay buffer room for `size` transitions in all,
-  keeping every transition it holds (in order)."""
-  buffer = model.replay_buffer
-  if buffer.buffer_size >= size:
-    return
-  held = buffer.buffer_size if buffer.full else buffer.pos
-  start = buffer.pos if buffer.full else 0
-  order = (np.arange(held) + start) % buffer.buffer_size
-  grown = type(buffer)(
-    size,
-    buffer.observation_space,
-    buffer.action_space,
-    device='cpu',
-    n_envs=buffer.n_envs,
-  )
-  for name in (
-    'observations',
-    'next_observations',
-    'actions',
-    'rewards',
-    'dones',
-    'timeouts',
-  ):
-    getattr(grown, name)[:held] = getattr(buffer, name)[order]
-  grown.pos, grown.full = held, False
-  model.replay_buffer = grown
-
-
 def _env_states(vec_env) -> list:
   return [
     env.unwrapped.robel_env.random_state.get_state() for env in vec_env.envs
@@ -542,7 +513,7 @@ def _reinforce(config: RunConfig, run: Run, data, metadata, resume) -> None:
     model = agents.load(agent, checkpoint, vec_env)
     if agent.replay and (output / REPLAY_BUFFER).is_file():
       model.load_replay_buffer(str(output / REPLAY_BUFFER))
-      grow_replay_buffer(model, config.steps + _demo_count(data))
+      replay.grow(model, config.steps + _demo_count(data))
     if (output / ENV_STATE).is_file():
       with open(output / ENV_STATE, 'rb') as file:
         _set_env_states(vec_env, pickle.load(file))
@@ -555,7 +526,10 @@ def _reinforce(config: RunConfig, run: Run, data, metadata, resume) -> None:
       config.steps + _demo_count(data),
     )
     if data is not None:
-      _add_demonstrations(model, data)
+      if config.num_envs != 1:
+        raise ValueError('demonstrations and recordings need --num_envs=1')
+      # The buffer's size (run steps + these) keeps them for the run.
+      replay.store(model.replay_buffer, data)
   # SB3's own logger would make a folder in /tmp per learn() call; the
   # evaluation log is the record of the run.
   model.set_logger(Logger(folder=None, output_formats=[]))
@@ -586,21 +560,6 @@ def _reinforce(config: RunConfig, run: Run, data, metadata, resume) -> None:
 
 def _demo_count(data) -> int:
   return 0 if data is None else len(data)
-
-
-def _add_demonstrations(model, data: demos.Transitions) -> None:
-  """Puts every demonstrated transition into the replay buffer, where the
-  buffer's size (run steps + demonstrations) keeps them for the run."""
-  buffer = model.replay_buffer
-  n = len(data)
-  if buffer.n_envs != 1:
-    raise ValueError('demonstrations need --num_envs=1')
-  buffer.observations[:n, 0] = data.observations
-  buffer.next_observations[:n, 0] = data.next_observations
-  buffer.actions[:n, 0] = data.actions
-  buffer.rewards[:n, 0] = data.rewards
-  buffer.dones[:n, 0] = data.terminals
-  buffer.pos = n
 
 
 def parse_hidden(values: Sequence[str]) -> tuple[int, ...]:

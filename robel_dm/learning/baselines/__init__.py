@@ -19,7 +19,6 @@ controller, or of the table's best solved policy of the task where there is
 none; a run whose demonstrations cannot be made yet waits for a later pass.
 """
 
-import argparse
 import dataclasses
 import fcntl
 import fnmatch
@@ -27,13 +26,12 @@ import json
 import pathlib
 import shutil
 import subprocess
-import sys
 import time
 from typing import Any
 
 from robel_dm import suite
 
-ROOT = pathlib.Path(__file__).resolve().parents[2]
+ROOT = pathlib.Path(__file__).resolve().parents[3]
 PLAN = json.loads((pathlib.Path(__file__).with_name('plan.json')).read_text())
 RUNS_DIR = ROOT / 'runs' / 'baselines'
 RESULTS = ROOT / 'docs' / 'baselines.json'
@@ -387,40 +385,3 @@ def train_ray(address: str, pattern: str | None) -> list[dict]:
           merge_results([result])
         print(f'{run.name}: {"done" if result else "waits for demos"}')
     return records
-
-
-def main(argv: list[str] | None = None) -> int:
-  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  commands = parser.add_subparsers(dest='command', required=True)
-  train_parser = commands.add_parser('train', help='run the table')
-  train_parser.add_argument('--queue', type=int, default=0)
-  train_parser.add_argument('--queues', type=int, default=1)
-  train_parser.add_argument('--only', default=None, help='fnmatch pattern')
-  train_parser.add_argument('--hours', type=float, default=None)
-  train_parser.add_argument('--ray_address', default=None)
-  commands.add_parser('list', help='the runs and whether each is done')
-  commands.add_parser('report', help='docs/baselines.md, figures, policies')
-  args = parser.parse_args(argv)
-  try:
-    if args.command == 'list':
-      for run in runs():
-        done = finished(run) or recorded(run)
-        print(f'{run.name:50s} {"done" if done else ""}')
-    elif args.command == 'report':
-      from robel_dm.learning import report  # noqa: PLC0415
-
-      report.write()
-    elif args.ray_address:
-      train_ray(args.ray_address, args.only)
-    else:
-      if not 0 <= args.queue < args.queues:
-        raise ValueError('--queue must be in [0, --queues)')
-      train_queue(args.queue, args.queues, args.only, args.hours)
-  except ValueError as error:
-    print(f'error: {error}', file=sys.stderr)
-    return 2
-  return 0
-
-
-if __name__ == '__main__':
-  sys.exit(main())

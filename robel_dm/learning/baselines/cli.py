@@ -1,0 +1,42 @@
+"""The baseline table's command line (`python -m robel_dm.learning.baselines`;
+see the package's docstring)."""
+
+import argparse
+import sys
+
+from robel_dm.learning import baselines
+from robel_dm.learning.baselines import report
+
+
+def main(argv: list[str] | None = None) -> int:
+  """Runs a command (train, list, report); returns the exit code."""
+  parser = argparse.ArgumentParser(
+    description=baselines.__doc__.splitlines()[0]
+  )
+  commands = parser.add_subparsers(dest='command', required=True)
+  train_parser = commands.add_parser('train', help='run the table')
+  train_parser.add_argument('--queue', type=int, default=0)
+  train_parser.add_argument('--queues', type=int, default=1)
+  train_parser.add_argument('--only', default=None, help='fnmatch pattern')
+  train_parser.add_argument('--hours', type=float, default=None)
+  train_parser.add_argument('--ray_address', default=None)
+  commands.add_parser('list', help='the runs and whether each is done')
+  commands.add_parser('report', help='docs/baselines.md, figures, policies')
+  args = parser.parse_args(argv)
+  try:
+    if args.command == 'list':
+      for run in baselines.runs():
+        done = baselines.finished(run) or baselines.recorded(run)
+        print(f'{run.name:50s} {"done" if done else ""}')
+    elif args.command == 'report':
+      report.write()
+    elif args.ray_address:
+      baselines.train_ray(args.ray_address, args.only)
+    else:
+      if not 0 <= args.queue < args.queues:
+        raise ValueError('--queue must be in [0, --queues)')
+      baselines.train_queue(args.queue, args.queues, args.only, args.hours)
+  except ValueError as error:
+    print(f'error: {error}', file=sys.stderr)
+    return 2
+  return 0
