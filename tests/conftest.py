@@ -60,3 +60,18 @@ def shared_env():
   yield load
   for env in cache.values():
     env.close()
+
+
+@pytest.fixture(scope='module')
+def kitty_envs():
+  """The D'Kitty Fixed tasks' environments, loaded once per module."""
+  envs = {
+    family: suite.load('dkitty', f'{family}_fixed', seed=0)
+    for family in ('stand', 'orient', 'walk')
+  }
+  yield envs
+  for env in envs.values():
+    env.close()
+
+
+# --- ROBEL's rewards (docs/robel_reference.md sections 2.5-2.7) ---------------
