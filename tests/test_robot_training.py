@@ -164,6 +164,25 @@ robot.train_on_robot(config, robot.RobotOptions(device_path='virtual'),
 """
 
 
+def _learner_processes(parent: int) -> list[int]:
+  """The learner processes `parent` started (Linux /proc)."""
+  found = []
+  for task in pathlib.Path(f'/proc/{parent}/task').iterdir():
+    for child in (task / 'children').read_text().split():
+      command = pathlib.Path(f'/proc/{child}/cmdline').read_bytes()
+      if b'spawn_main' in command:
+        found.append(int(child))
+  return found
+
+
+def _alive(pid: int) -> bool:
+  try:
+    state = pathlib.Path(f'/proc/{pid}/stat').read_text().split()[2]
+  except FileNotFoundError:
+    return False
+  return state != 'Z'
+
+
 def test_kill_9_loses_nothing_already_recorded_and_resume_goes_on(tmp_path):
   root = pathlib.Path(__file__).resolve().parents[1]
   process = subprocess.Popen(
@@ -180,9 +199,16 @@ def test_kill_9_loses_nothing_already_recorded_and_resume_goes_on(tmp_path):
       if line.startswith('episode 4 '):
         break
     time.sleep(1.5)
+    learners = _learner_processes(process.pid)
     process.send_signal(signal.SIGKILL)
   finally:
     process.wait(timeout=30)
+  # The orphaned learner saves and exits (a hang guard of 60 s).
+  assert len(learners) == 1
+  deadline = time.monotonic() + 60
+  while _alive(learners[0]):
+    assert time.monotonic() < deadline, 'the orphaned learner still runs'
+    time.sleep(0.2)
   recorded = _recorded_steps(tmp_path / robot.RECORDING)
   assert recorded >= 240
   lines = []

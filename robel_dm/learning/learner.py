@@ -137,6 +137,7 @@ def learner_main(setup: LearnerSetup, inbox, outbox) -> None:
     _learn(model, setup, chunk, starts, checkpoint, inbox, outbox)
   except BaseException as error:  # noqa: BLE001 (reported to the actor)
     outbox.put(('error', f'{type(error).__name__}: {error}'))
+    outbox.cancel_join_thread()  # The actor may be gone: never hang.
     raise
 
 
@@ -169,6 +170,9 @@ def _learn(model, setup, chunk, starts, checkpoint, inbox, outbox) -> None:
       message = None
       if os.getppid() != parent:  # The actor was killed: keep what we have.
         save()
+        # Nobody reads the actor weights still queued: exit without waiting
+        # to hand them over (the process would hang there for ever).
+        outbox.cancel_join_thread()
         return
     while message is not None:
       kind = message[0]
@@ -284,4 +288,7 @@ class Learner:
     self._process.join(timeout=5)
     if self._process.is_alive():
       self._process.terminate()
+      self._process.join(timeout=5)
+    if self._process.is_alive():
+      self._process.kill()
       self._process.join(timeout=5)
