@@ -16,7 +16,10 @@ currents, a goal display, tracked targets) it asks of its `RobotIO`.
 """
 
 import collections
+from collections.abc import Mapping
+import dataclasses
 import math
+from typing import Any
 
 from dm_control import composer, mjcf
 from dm_control.composer.observation import observable
@@ -42,6 +45,36 @@ _ACTION_BOUND_TOLERANCE = 1e-6
 ACTION_BOUND_MODES = ('raise', 'clip')
 
 
+def reward_constants(default, given):
+  """The reward constants a task runs with: `default` (a frozen dataclass
+  of ROBEL's values), replaced whole by an instance of its class, or with
+  some fields overridden by a mapping (JSON-friendly, e.g. from
+  `--task_kwargs='{"reward": {"joint_vel_weight": 0.2}}'`).
+
+  Raises:
+    ValueError: naming unknown fields or values that are not finite numbers.
+  """
+  if given is None or given is default:
+    return default
+  if isinstance(given, type(default)):
+    return given
+  if not isinstance(given, Mapping):
+    raise ValueError(
+      f'reward must be a {type(default).__name__} or a mapping of its '
+      f'fields, got {given!r}'
+    )
+  fields = [field.name for field in dataclasses.fields(default)]
+  unknown = sorted(set(given) - set(fields))
+  if unknown:
+    raise ValueError(f'reward: unknown constants {unknown}; known: {fields}')
+  for name, value in given.items():
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+      raise ValueError(f'reward.{name} must be a number, got {value!r}')
+    if not math.isfinite(value):
+      raise ValueError(f'reward.{name} must be finite, got {value}')
+  return dataclasses.replace(default, **given)
+
+
 def mocap_index(physics, body: mjcf.Element) -> int:
   """Index of a mocap body in `data.mocap_pos` / `data.mocap_quat`."""
   body_id = physics.model.name2id(body.full_identifier, 'body')
@@ -62,6 +95,8 @@ class RobelTask(composer.Task):
   FEATURES: dict[str, int] = {}
   DEFAULT_OBSERVATION_KEYS: tuple[str, ...] = ()
   REWARD_TERMS: tuple[str, ...] = ()
+  # ROBEL's reward, score and success constants (a frozen dataclass).
+  DEFAULT_REWARD: Any = None
 
   def __init__(
     self,
@@ -79,6 +114,7 @@ class RobelTask(composer.Task):
     observation_keys: tuple[str, ...] | None = None,
     action_bounds: str = 'raise',
     root_joint: mjcf.Element | None = None,
+    reward: Any = None,
   ):
     """Initializes the task.
 
@@ -99,11 +135,15 @@ class RobelTask(composer.Task):
       action_bounds: 'raise' (default) rejects actions outside [-1, 1];
         'clip' clips them as ROBEL did.
       root_joint: the free joint of a free-floating robot, or None.
+      reward: the reward constants (see `reward_constants`); ROBEL's if
+        None. The task reads them from `self.reward_constants`.
 
     Raises:
       ValueError: for unknown observation keys, a bad `action_bounds`, a
-        negative noise fraction or non-positive episode length.
+        negative noise fraction, non-positive episode length or bad reward
+        constants.
     """
+    self.reward_constants = reward_constants(self.DEFAULT_REWARD, reward)
     if action_bounds not in ACTION_BOUND_MODES:
       raise ValueError(
         f'action_bounds must be one of {ACTION_BOUND_MODES}, got '

@@ -72,6 +72,7 @@ class PoseTask(base.RobelTask):
   FEATURES = {'qpos': 9, 'qvel': 9, 'last_action': 9, 'qpos_error': 9}
   DEFAULT_OBSERVATION_KEYS = ('qpos', 'last_action', 'qpos_error')
   REWARD_TERMS = ('pose_error_cost', 'joint_vel_cost')
+  DEFAULT_REWARD = REWARD
 
   def __init__(
     self,
@@ -205,19 +206,24 @@ class PoseTask(base.RobelTask):
   def _compute_reward_terms(self) -> dict[str, float]:
     speed_squared = np.square(self._qvel, out=self._speed_squared)
     fast = np.greater_equal(
-      speed_squared, REWARD.fast_joint_speed**2, out=self._fast
+      speed_squared, self.reward_constants.fast_joint_speed**2, out=self._fast
     )
     return {
       'pose_error_cost': -geometry.norm(self._true_error),
-      'joint_vel_cost': -REWARD.joint_vel_weight
+      'joint_vel_cost': -self.reward_constants.joint_vel_weight
       * math.sqrt(geometry.dot(speed_squared, fast)),
     }
 
   def _compute_score(self) -> float:
-    return 1.0 - min(self._mean_error / REWARD.points_error_scale, 1.0)
+    return 1.0 - min(
+      self._mean_error / self.reward_constants.points_error_scale, 1.0
+    )
 
   def _compute_success(self) -> bool:
-    return self._episode_mean(self._mean_error) < REWARD.success_threshold
+    return (
+      self._episode_mean(self._mean_error)
+      < self.reward_constants.success_threshold
+    )
 
 
 @registry.DCLAW.add(registry.FIXED)

@@ -76,6 +76,7 @@ class TurnTask(base.RobelTask):
     'bonus_small',
     'bonus_big',
   )
+  DEFAULT_REWARD = REWARD
 
   def __init__(
     self,
@@ -232,16 +233,20 @@ class TurnTask(base.RobelTask):
     distance = self._distance
     pose_diff = np.subtract(self._qpos[:-1], dclaw.RESET_POSE, out=self._diff)
     claw_qvel = self._qvel[:-1]
-    fast = np.abs(claw_qvel) >= REWARD.fast_joint_speed
+    fast = np.abs(claw_qvel) >= self.reward_constants.fast_joint_speed
     return {
-      'target_dist_cost': -REWARD.target_dist_weight * distance,
+      'target_dist_cost': -self.reward_constants.target_dist_weight * distance,
       'pose_diff_cost': -geometry.norm(pose_diff),
       'joint_vel_cost': -geometry.norm(claw_qvel[fast]),
       'bonus_small': (
-        REWARD.bonus_small if distance < REWARD.bonus_small_distance else 0.0
+        self.reward_constants.bonus_small
+        if distance < self.reward_constants.bonus_small_distance
+        else 0.0
       ),
       'bonus_big': (
-        REWARD.bonus_big if distance < REWARD.bonus_big_distance else 0.0
+        self.reward_constants.bonus_big
+        if distance < self.reward_constants.bonus_big_distance
+        else 0.0
       ),
     }
 

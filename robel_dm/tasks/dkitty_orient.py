@@ -76,6 +76,7 @@ class OrientTask(base.RobelTask):
     'bonus_small',
     'bonus_big',
   )
+  DEFAULT_REWARD = REWARD
 
   def __init__(
     self,
@@ -142,23 +143,26 @@ class OrientTask(base.RobelTask):
 
   def _compute_reward_terms(self) -> dict[str, float]:
     angle_error = self._angle_error
-    upright = self._kitty.torso.upright > REWARD.bonus_upright
+    upright = self._kitty.torso.upright > self.reward_constants.bonus_upright
     # Either condition pays the small bonus once (ROBEL's logical OR).
-    small = angle_error < REWARD.bonus_small_angle or upright
+    small = angle_error < self.reward_constants.bonus_small_angle or upright
     return {
       **self._kitty.upright_terms(),
-      'alignment_error_cost': -REWARD.alignment_weight * angle_error,
-      'center_distance_cost': -REWARD.center_distance_weight
+      'alignment_error_cost': -self.reward_constants.alignment_weight
+      * angle_error,
+      'center_distance_cost': -self.reward_constants.center_distance_weight
       * geometry.norm(self._kitty.torso.position[:2]),
-      'bonus_small': REWARD.bonus_small if small else 0.0,
-      'bonus_big': REWARD.bonus_big if self._facing_target() else 0.0,
+      'bonus_small': self.reward_constants.bonus_small if small else 0.0,
+      'bonus_big': self.reward_constants.bonus_big
+      if self._facing_target()
+      else 0.0,
     }
 
   def _facing_target(self) -> bool:
     """Facing the target and upright: `bonus_big` and success."""
     return (
-      self._angle_error < REWARD.bonus_big_angle
-      and self._kitty.torso.upright > REWARD.bonus_upright
+      self._angle_error < self.reward_constants.bonus_big_angle
+      and self._kitty.torso.upright > self.reward_constants.bonus_upright
     )
 
   def _compute_score(self) -> float:

@@ -66,6 +66,7 @@ class StandTask(base.RobelTask):
     'bonus_small',
     'bonus_big',
   )
+  DEFAULT_REWARD = REWARD
 
   def __init__(
     self,
@@ -155,27 +156,29 @@ class StandTask(base.RobelTask):
     upright = torso.upright
     return {
       **self._kitty.upright_terms(),
-      'pose_error_cost': -REWARD.pose_error_weight * error,
-      'center_distance_cost': -REWARD.center_distance_weight
+      'pose_error_cost': -self.reward_constants.pose_error_weight * error,
+      'center_distance_cost': -self.reward_constants.center_distance_weight
       * geometry.norm(torso.position[:2]),
       'bonus_small': (
-        REWARD.bonus_small * upright
-        if error < REWARD.bonus_small_error
+        self.reward_constants.bonus_small * upright
+        if error < self.reward_constants.bonus_small_error
         else 0.0
       ),
-      'bonus_big': REWARD.bonus_big if self._standing() else 0.0,
+      'bonus_big': self.reward_constants.bonus_big if self._standing() else 0.0,
     }
 
   def _standing(self) -> bool:
     """Close to the standing pose and upright: `bonus_big` and success."""
     return (
-      self._mean_error < REWARD.bonus_big_error
-      and self._kitty.torso.upright > REWARD.bonus_big_upright
+      self._mean_error < self.reward_constants.bonus_big_error
+      and self._kitty.torso.upright > self.reward_constants.bonus_big_upright
     )
 
   def _compute_score(self) -> float:
     # ROBEL wrote max(), which makes the points <= 0 always; min() is meant.
-    points = 1.0 - min(self._mean_error / REWARD.points_error_scale, 1.0)
+    points = 1.0 - min(
+      self._mean_error / self.reward_constants.points_error_scale, 1.0
+    )
     return points * self._kitty.torso.upright
 
   def _compute_success(self) -> bool:

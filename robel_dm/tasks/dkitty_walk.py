@@ -79,6 +79,7 @@ class WalkTask(base.RobelTask):
     'bonus_small',
     'bonus_big',
   )
+  DEFAULT_REWARD = REWARD
 
   def __init__(
     self,
@@ -148,18 +149,21 @@ class WalkTask(base.RobelTask):
     self._distance = geometry.norm(target_error)
 
   def _compute_reward_terms(self) -> dict[str, float]:
-    near = self._distance < REWARD.bonus_distance
-    facing = self._heading > REWARD.heading_threshold
-    threshold = REWARD.heading_threshold
+    near = self._distance < self.reward_constants.bonus_distance
+    facing = self._heading > self.reward_constants.heading_threshold
+    threshold = self.reward_constants.heading_threshold
     return {
       **self._kitty.upright_terms(),
-      'target_dist_cost': -REWARD.target_distance_weight * self._distance,
-      'heading': REWARD.heading_weight
+      'target_dist_cost': -self.reward_constants.target_distance_weight
+      * self._distance,
+      'heading': self.reward_constants.heading_weight
       * (self._heading - threshold)
       / (1 - threshold),
       # Either condition pays the small bonus once (ROBEL's logical OR).
-      'bonus_small': REWARD.bonus_small if near or facing else 0.0,
-      'bonus_big': REWARD.bonus_big if near and facing else 0.0,
+      'bonus_small': self.reward_constants.bonus_small
+      if near or facing
+      else 0.0,
+      'bonus_big': self.reward_constants.bonus_big if near and facing else 0.0,
     }
 
   def _compute_score(self) -> float:
@@ -167,8 +171,8 @@ class WalkTask(base.RobelTask):
 
   def _compute_success(self) -> bool:
     return (
-      self._distance < REWARD.bonus_distance
-      and self._heading > REWARD.heading_threshold
+      self._distance < self.reward_constants.bonus_distance
+      and self._heading > self.reward_constants.heading_threshold
     )
 
   def _compute_failure(self) -> bool:
