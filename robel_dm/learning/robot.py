@@ -152,19 +152,12 @@ class _Episode:
   ended: str = 'time limit'
 
 
-def _flatten(observation: dict, keys: tuple[str, ...]) -> np.ndarray:
-  return np.concatenate([np.ravel(observation[key]) for key in keys]).astype(
-    np.float32
-  )
-
-
 class _RobotRun:
   """The actor side of a run: the robot, the recording, the bookkeeping."""
 
   def __init__(self, config, options, output, metadata, learner, log):
     self.config, self.options, self.output = config, options, output
     self.metadata, self.learner, self.log = metadata, learner, log
-    self.keys = tuple(metadata['observation_keys'])
     self.steps = 0
     self.episodes = 0
     self.faults = 0
@@ -223,7 +216,8 @@ class _RobotRun:
     timestep = self._reset()
     result = _Episode(purpose)
     since = len(self.timing) if self.timing is not None else 0
-    observation = _flatten(timestep.observation, self.keys)
+    flatten = self.env.task.flatten_observation
+    observation = flatten(timestep.observation).astype(np.float32)
     action_size = self.env.action_spec().shape[0]
     while not timestep.last():
       self.learner.poll()
@@ -240,7 +234,7 @@ class _RobotRun:
         result.ended = f'fault: {type(error).__name__}: {error}'
         self.log(f'hardware fault, episode ended, torque off: {error}')
         break
-      next_observation = _flatten(timestep.observation, self.keys)
+      next_observation = flatten(timestep.observation).astype(np.float32)
       terminal = timestep.last() and timestep.discount == 0.0
       safety = timestep.observation['safety']
       # What the agent learns from (--safety_penalty); the logs keep
