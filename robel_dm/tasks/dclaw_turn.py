@@ -65,6 +65,9 @@ class TurnTask(base.RobelTask):
     'object_qvel': 1,
     'last_action': 9,
     'target_error': 1,
+    # Not in ROBEL's observation: the moving goal's velocity (rad/s), for
+    # studies of what Screw Random needs (observation_keys=...).
+    'goal_velocity': 1,
   }
   DEFAULT_OBSERVATION_KEYS = (
     'claw_qpos', 'object_x', 'object_y', 'last_action', 'target_error'
@@ -149,6 +152,7 @@ class TurnTask(base.RobelTask):
     self._claw_qvel_feature = self._features['claw_qvel']
     self._object_features = self.feature_span('object_x', 'object_qvel')
     self._target_error_feature = self._features['target_error']
+    self._goal_velocity_feature = self._features['goal_velocity']
     self._diff = np.zeros(len(claw.joints))
 
   @property
@@ -213,6 +217,9 @@ class TurnTask(base.RobelTask):
       # The goal moves with time; time is a whole number of control steps.
       self._goal = self._goal_start + self._velocity * self._mjdata.time
       self._show_goal()
+    self._goal_velocity_feature[0] = (
+      0.0 if person_goal is not None else self._velocity
+    )
     sensed_qpos, sensed_qvel = self._sensed_qpos, self._sensed_qvel
     sensed_angle = float(sensed_qpos[-1])
     self._claw_qpos_feature[:] = sensed_qpos[:-1]
