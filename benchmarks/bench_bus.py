@@ -27,9 +27,9 @@ import numpy as np
 from robel_dm import suite
 from robel_dm.entities import dkitty
 from robel_dm.hardware import config as config_lib
-from robel_dm.hardware import control_table as table
-from robel_dm.hardware import dynamixel
 from robel_dm.hardware import environment as hardware
+from robel_dm.hardware.dynamixel import client as dynamixel
+from robel_dm.hardware.dynamixel import control_table as table
 
 # Wire bytes of one step at 1 Mbps (docs/dynamixel.md section 5): sync-read
 # instruction 14 + N, N status replies of 11 bytes + the state block (goal
@@ -47,7 +47,7 @@ def physical_bus_ms(motors: int) -> float:
 @contextlib.contextmanager
 def virtual_bus(robot: str):
   process = subprocess.Popen(
-    [sys.executable, '-m', 'robel_dm.hardware.virtual',
+    [sys.executable, '-m', 'robel_dm.tools.virtual_bus',
      f'--robot={robot}', '--driver=ideal'],
     stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
   )  # fmt: skip

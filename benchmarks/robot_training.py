@@ -4,7 +4,7 @@ r"""Learning on robots in real time: standalone virtual buses, one run each.
     MUJOCO_GL=egl python benchmarks/robot_training.py --kill_at_step=3000 \
         --robots=default,$R/claw_a.json,$R/claw_b.json
 
-Each robot is a standalone virtual bus (`python -m robel_dm.hardware.virtual
+Each robot is a standalone virtual bus (`python -m robel_dm.tools.virtual_bus
 --driver=sim`, the simulation advancing with the wall clock, so 20 control
 steps of Pose take a second as on a claw); `default` is ROBEL's model, a
 file is a calibration (another claw of the same design). On each, `train
@@ -42,7 +42,12 @@ PERIOD = 0.05  # D'Claw Pose's control period, s.
 
 
 def _start_bus(dynamics: str | None) -> tuple[subprocess.Popen, str]:
-  command = [sys.executable, '-m', 'robel_dm.hardware.virtual', '--robot=dclaw']
+  command = [
+    sys.executable,
+    '-m',
+    'robel_dm.tools.virtual_bus',
+    '--robot=dclaw',
+  ]
   if dynamics:
     command.append(f'--dynamics={dynamics}')
   bus = subprocess.Popen(

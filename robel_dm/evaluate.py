@@ -152,7 +152,7 @@ def evaluate(
     dynamics: a calibration file of the simulated robot (see
       `suite.load` and docs/sysid.md).
     tracker: with `device_path`, a D'Kitty's motion tracker as a spec
-      (`robel_dm.hardware.tracker_spec`), e.g.
+      (`robel_dm.hardware.tracking.spec`), e.g.
       'natnet:10.0.0.5,rigid_body=1,target=2'.
 
   Returns:
@@ -183,7 +183,7 @@ def evaluate(
   # built (and a robot moves); None for policies that are not files.
   checked = policies.check_file(policy, domain, task, task_kwargs)
   if tracker is not None:
-    from robel_dm.hardware import tracker_spec  # noqa: PLC0415
+    from robel_dm.hardware.tracking import spec as tracker_spec  # noqa: PLC0415
 
     tracker = tracker_spec.make_tracker(tracker)
   env = suite.load(
@@ -393,7 +393,7 @@ def _define_flags() -> None:
     'device_path',
     None,
     'Run on a robot: its Dynamixel bus (e.g. /dev/ttyUSB0, or the path '
-    'printed by `python -m robel_dm.hardware.virtual`), or "virtual" for '
+    'printed by `python -m robel_dm.tools.virtual_bus`), or "virtual" for '
     'an in-process simulated bus. Default: simulation.',
   )
   flags.DEFINE_string(

@@ -112,8 +112,9 @@ def load(
       robot configuration; ROBEL's configuration of the domain by default.
     reset: with `device_path`: 'scripted', 'move' or 'manual' (see
       `robel_dm.hardware.resets`); the robot's default if None.
-    tracker: with `device_path`: a `robel_dm.hardware.tracking.TorsoTracker`
-      giving the D'Kitty's torso pose (and Orient/Walk targets).
+    tracker: with `device_path`: a
+      `robel_dm.hardware.tracking.tracker.TorsoTracker` giving the D'Kitty's
+      torso pose (and Orient/Walk targets).
     guide: with `device_path`, for D'Claw Turn/Screw: ROBEL's guide motor
       'show's the goal, or ('interactive') a person turns it to set the
       goal.

@@ -1,7 +1,8 @@
 """Architecture rules, checked by tools rather than by hope.
 
-* The import layers of `pyproject.toml` ([tool.importlinter]) hold: scene
-  parts, tasks and the hardware layer never import the layers above them.
+* The import contracts of `pyproject.toml` ([tool.importlinter]) hold:
+  every module imports only the layers below it, siblings of a layer are
+  independent, no package has an import cycle, and no import is waived.
 * Only `robel_dm/environment.py` touches dm_control's private names.
 * No module of the package is longer than 600 lines.
 """
@@ -14,6 +15,7 @@ import subprocess
 import sys
 
 import pytest
+import tomllib
 
 _ROOT = pathlib.Path(__file__).resolve().parent.parent
 _PACKAGE = _ROOT / 'robel_dm'
@@ -70,19 +72,62 @@ def test_import_layers_hold():
   assert '0 broken' in result.stdout
 
 
-def test_import_layers_catch_a_task_importing_the_hardware_layer(tmp_path):
-  # A copy of the package in which a task reaches up into the hardware
-  # layer: the contract must break.
+@pytest.mark.parametrize(
+  'module, imported, broken',
+  [
+    # A task reaching up into the hardware layer.
+    ('tasks/base.py', 'robel_dm.hardware.physics', 'robel_dm.tasks.base'),
+    # One command importing another of its layer.
+    ('plot.py', 'robel_dm.tools.view', 'robel_dm.plot -> robel_dm.tools'),
+    # A cycle inside the hardware layer (environment imports physics).
+    (
+      'hardware/physics.py',
+      'robel_dm.hardware.environment',
+      '.physics -> .environment',
+    ),
+  ],
+)
+def test_the_contracts_catch_a_bad_import(tmp_path, module, imported, broken):
+  # A copy of the package with one bad import added: a contract must break.
   shutil.copytree(
     _PACKAGE, tmp_path / 'robel_dm', ignore=shutil.ignore_patterns('*.pyc')
   )
-  base = tmp_path / 'robel_dm' / 'tasks' / 'base.py'
-  base.write_text(
-    base.read_text() + '\nfrom robel_dm.hardware import physics  # noqa\n'
-  )
+  path = tmp_path / 'robel_dm' / module
+  path.write_text(path.read_text() + f'\nimport {imported}  # noqa\n')
   result = _lint_imports(python_path=tmp_path)
   assert result.returncode != 0, result.stdout
-  assert 'robel_dm.tasks.base -> robel_dm.hardware.physics' in result.stdout
+  assert broken in result.stdout
+
+
+def _contracts() -> list[dict]:
+  with open(_ROOT / 'pyproject.toml', 'rb') as file:
+    return tomllib.load(file)['tool']['importlinter']['contracts']
+
+
+def _top_level_modules() -> set[str]:
+  return {
+    f'robel_dm.{path.stem}'
+    for path in _PACKAGE.iterdir()
+    if (path.suffix == '.py' and path.stem != '__init__')
+    or (path / '__init__.py').is_file()
+  }
+
+
+def test_no_contract_is_weakened():
+  contracts = _contracts()
+  assert not [c['name'] for c in contracts if 'ignore_imports' in c]
+  (layers,) = [c for c in contracts if c['type'] == 'layers']
+  # Siblings independent (no `:` groups), every module in one layer.
+  assert not [layer for layer in layers['layers'] if ':' in layer]
+  placed = [
+    module.strip() for layer in layers['layers'] for module in layer.split('|')
+  ]
+  assert sorted(placed) == sorted(_top_level_modules())
+  assert layers['layers'][0].split('|')[0].strip() == 'robel_dm.tools'
+  assert layers.get('exhaustive', False) is False  # Checked above instead.
+  (acyclic,) = [c for c in contracts if c['type'] == 'acyclic_siblings']
+  assert set(acyclic['ancestors']) == {'robel_dm', 'robel_dm.hardware'}
+  assert 'depth' not in acyclic and 'skip_descendants' not in acyclic
 
 
 def _foreign_private_reads(path: pathlib.Path) -> list[str]:

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from robel_dm import cli_checks, evaluate, policies, result_table, suite
-from robel_dm.hardware import tracker_spec
+from robel_dm.hardware.tracking import spec as tracker_spec
 
 FLAGS = flags.FLAGS
 _TASK = ('dclaw', 'pose_fixed')

@@ -14,9 +14,10 @@ import test_robot_safety as safety
 
 from robel_dm import evaluate, suite
 from robel_dm.hardware import config as config_lib
-from robel_dm.hardware import control_table as table
-from robel_dm.hardware import dynamixel, virtual
 from robel_dm.hardware import environment as hardware_env
+from robel_dm.hardware import virtual
+from robel_dm.hardware.dynamixel import client as dynamixel
+from robel_dm.hardware.dynamixel import control_table as table
 
 # Without the hardware extra these tests are skipped, not errors.
 sdk = pytest.importorskip('dynamixel_sdk')

@@ -22,9 +22,11 @@ import pytest
 import test_robot_safety as safety
 
 from robel_dm.hardware import config as config_lib
-from robel_dm.hardware import control_table as table
-from robel_dm.hardware import dynamixel, protocol, shutdown
-from robel_dm.hardware.protocol import Instruction
+from robel_dm.hardware import shutdown
+from robel_dm.hardware.dynamixel import client as dynamixel
+from robel_dm.hardware.dynamixel import control_table as table
+from robel_dm.hardware.dynamixel import protocol
+from robel_dm.hardware.dynamixel.protocol import Instruction
 
 # Without the hardware extra these tests are skipped, not errors.
 sdk = pytest.importorskip('dynamixel_sdk')

@@ -10,7 +10,7 @@ tells the 4.1 layout (sections with byte counts) from 3.x/4.0.
 import numpy as np
 import pytest
 
-from robel_dm.hardware import natnet
+from robel_dm.hardware.tracking import natnet
 
 reference = pytest.importorskip('natnet.data_frame')
 from natnet.packet_buffer import PacketBuffer  # noqa: E402

@@ -175,7 +175,7 @@ def test_the_command_line_summarizes_a_recording(tmp_path):
 def test_motor_health_and_faults_are_recorded_on_the_virtual_bus(tmp_path):
   pytest.importorskip('dynamixel_sdk')
   from robel_dm import suite  # noqa: PLC0415
-  from robel_dm.hardware import control_table as table  # noqa: PLC0415
+  from robel_dm.hardware.dynamixel import control_table as table  # noqa: PLC0415
 
   env = recording.Recorder(
     suite.load('dclaw', 'pose_fixed', device_path='virtual'), tmp_path

@@ -15,8 +15,8 @@ import pytest
 import test_robot_safety as safety
 
 from robel_dm import suite
-from robel_dm.hardware import control_table as table
-from robel_dm.hardware import dynamixel
+from robel_dm.hardware.dynamixel import client as dynamixel
+from robel_dm.hardware.dynamixel import control_table as table
 
 # Without the hardware extra these tests are skipped, not errors.
 sdk = pytest.importorskip('dynamixel_sdk')

@@ -5,10 +5,13 @@ import pytest
 
 from robel_dm import suite
 from robel_dm.hardware import config as config_lib
-from robel_dm.hardware import control_table as table
-from robel_dm.hardware import resets, sim_robot, tracking
+from robel_dm.hardware import resets
+from robel_dm.hardware.dynamixel import control_table as table
+from robel_dm.hardware.tracking import tracker as tracking
 
 # Every test here runs on the virtual bus: skipped without the hardware
+from robel_dm.hardware.virtual import sim_robot
+
 # extra.
 pytest.importorskip('dynamixel_sdk')
 

@@ -21,9 +21,10 @@ import pytest
 
 from robel_dm import suite
 from robel_dm.hardware import config as config_lib
-from robel_dm.hardware import control_table as table
-from robel_dm.hardware import dynamixel, shutdown, virtual
-from robel_dm.hardware.protocol import Instruction
+from robel_dm.hardware import shutdown, virtual
+from robel_dm.hardware.dynamixel import client as dynamixel
+from robel_dm.hardware.dynamixel import control_table as table
+from robel_dm.hardware.dynamixel.protocol import Instruction
 
 # Without the hardware extra these tests are skipped, not errors.
 sdk = pytest.importorskip('dynamixel_sdk')
@@ -117,7 +118,7 @@ def standalone_bus():
   """A D'Claw's motors on a virtual bus in its own process; its path."""
   process = subprocess.Popen(
     preexec_fn=child_signals.default,
-    args=[sys.executable, '-m', 'robel_dm.hardware.virtual', '--robot=dclaw',
+    args=[sys.executable, '-m', 'robel_dm.tools.virtual_bus', '--robot=dclaw',
      '--driver=ideal'],
     stdout=subprocess.PIPE,
     stderr=subprocess.PIPE,
@@ -361,7 +362,7 @@ def test_corrupted_replies_blame_the_motor_that_sent_them(
 def test_a_late_reply_is_not_taken_for_a_motors_state(claw, monkeypatch):
   # A ping that timed out can be answered late; its reply then waits in the
   # port and the next state read takes it for motor 10's (3 bytes, not 20).
-  from robel_dm.hardware import protocol  # noqa: PLC0415
+  from robel_dm.hardware.dynamixel import protocol  # noqa: PLC0415
 
   late_ping_reply = protocol.encode_status(10, 0, bytes([0xE8, 0x03, 0x2D]))
   pending = []

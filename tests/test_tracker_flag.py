@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from robel_dm import evaluate
-from robel_dm.hardware import natnet, tracker_spec
+from robel_dm.hardware.tracking import natnet
+from robel_dm.hardware.tracking import spec as tracker_spec
 
 pytest.importorskip('dynamixel_sdk')  # The virtual bus.
 

@@ -10,7 +10,7 @@ import pytest
 
 from robel_dm import geometry as geo
 from robel_dm import suite
-from robel_dm.hardware import tracking as tr
+from robel_dm.hardware.tracking import tracker as tr
 
 
 def _rotation(axis, angle):

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from robel_dm import geometry as geo
-from robel_dm.hardware import natnet
-from robel_dm.hardware import tracking as tr
+from robel_dm.hardware.tracking import natnet
+from robel_dm.hardware.tracking import tracker as tr
 
 _WAIT = 2.0  # s, the longest any test waits for a datagram.
 

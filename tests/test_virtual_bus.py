@@ -11,9 +11,11 @@ import random
 
 import pytest
 
-from robel_dm.hardware import config, protocol, virtual
-from robel_dm.hardware import control_table as table
-from robel_dm.hardware.protocol import Error, Instruction
+from robel_dm.hardware import config, virtual
+from robel_dm.hardware.dynamixel import control_table as table
+from robel_dm.hardware.dynamixel import protocol
+from robel_dm.hardware.dynamixel.protocol import Error, Instruction
+from robel_dm.tools import virtual_bus
 
 sdk = pytest.importorskip('dynamixel_sdk')
 serial = pytest.importorskip('serial')
@@ -297,11 +299,11 @@ def test_set_present_rejects_floats_and_overflow():
 
 
 def test_build_bus_for_the_shipped_robots():
-  dclaw = virtual.build_bus(config.default('dclaw'))
+  dclaw = virtual_bus.build_bus(config.default('dclaw'))
   assert sorted(dclaw.by_id()) == [10, 11, 12, 20, 21, 22, 30, 31, 32, 50, 60]
-  dkitty = virtual.build_bus(config.default('dkitty'))
+  dkitty = virtual_bus.build_bus(config.default('dkitty'))
   assert len(dkitty.servos) == 12
   with pytest.raises(ValueError):
-    virtual.build_bus(config.default('dclaw'), driver='nonsense')
+    virtual_bus.build_bus(config.default('dclaw'), driver='nonsense')
   with pytest.raises(ValueError):
     virtual.Bus(virtual.make_servos([1, 1]))

@@ -19,9 +19,11 @@ import time
 
 import pytest
 
-from robel_dm.hardware import config, protocol, virtual
-from robel_dm.hardware import control_table as table
-from robel_dm.hardware.protocol import Error, Instruction
+from robel_dm.hardware import config, virtual
+from robel_dm.hardware.dynamixel import control_table as table
+from robel_dm.hardware.dynamixel import protocol
+from robel_dm.hardware.dynamixel.protocol import Error, Instruction
+from robel_dm.tools import virtual_bus
 
 sdk = pytest.importorskip('dynamixel_sdk')
 serial = pytest.importorskip('serial')
@@ -468,7 +470,7 @@ def test_server_is_idle_without_traffic_and_stops_cleanly():
 
 def test_command_line_serves_a_robot():
   process = subprocess.Popen(
-    [sys.executable, '-m', 'robel_dm.hardware.virtual', '--robot=dclaw'],
+    [sys.executable, '-m', 'robel_dm.tools.virtual_bus', '--robot=dclaw'],
     stdout=subprocess.PIPE,
     stderr=subprocess.PIPE,
     text=True,
@@ -499,7 +501,7 @@ def test_a_real_time_bus_answers_promptly_after_an_idle_spell(monkeypatch):
   import math  # noqa: PLC0415
 
   from robel_dm import suite  # noqa: PLC0415
-  from robel_dm.hardware import sim_robot  # noqa: PLC0415
+  from robel_dm.hardware.virtual import sim_robot  # noqa: PLC0415
 
   scene = suite.load('dclaw', 'turn_fixed', seed=0, time_limit=math.inf)
   clock = [100.0]
@@ -507,7 +509,7 @@ def test_a_real_time_bus_answers_promptly_after_an_idle_spell(monkeypatch):
   robot = sim_robot.SimulatedRobot(
     scene, config.default('dclaw'), realtime=True
   )
-  bus = virtual.build_bus(config.default('dclaw'))
+  bus = virtual_bus.build_bus(config.default('dclaw'))
   servos = {servo.motor_id: servo for servo in bus.servos}
   clock[0] += 600.0  # Ten idle minutes.
   robot.on_read(servos, [10])

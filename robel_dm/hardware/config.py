@@ -30,7 +30,7 @@ import os
 import pathlib
 from typing import Any
 
-from robel_dm.hardware import control_table
+from robel_dm.hardware.dynamixel import control_table
 
 _MAX_ID = 252
 

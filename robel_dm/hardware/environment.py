@@ -23,10 +23,11 @@ from robel_dm import constants
 from robel_dm import environment as environment_lib
 from robel_dm.hardware import clock as clock_lib
 from robel_dm.hardware import config as config_lib
-from robel_dm.hardware import dynamixel, resets, shutdown
 from robel_dm.hardware import physics as physics_lib
+from robel_dm.hardware import resets, shutdown
 from robel_dm.hardware import robot as robot_lib
 from robel_dm.hardware import robot_io as robot_io_lib
+from robel_dm.hardware.dynamixel import client as dynamixel
 
 VIRTUAL_DEVICE = constants.VIRTUAL_DEVICE
 
@@ -242,8 +243,8 @@ def make_environment(
   if free_floating and not virtual and torso_source is None:
     raise ValueError(
       f'the {task_label} needs the torso pose (upright, heading, '
-      'position) from a motion tracker: pass tracker= (a '
-      'robel_dm.hardware.tracking.TorsoTracker, e.g. on a NatNet stream; '
+      'position) from a motion tracker: pass tracker= (a robel_dm.'
+      'hardware.tracking.tracker.TorsoTracker, e.g. on a NatNet stream; '
       "see docs/bringup.md), or use device_path='virtual' for the simulated "
       'bus.'
     )
@@ -259,8 +260,8 @@ def make_environment(
   on_close = [] if tracker is None else [tracker.close]
   bus = simulation = None
   if virtual:
-    from robel_dm.hardware import sim_robot  # noqa: PLC0415
     from robel_dm.hardware import virtual as virtual_lib  # noqa: PLC0415
+    from robel_dm.hardware.virtual import sim_robot  # noqa: PLC0415
 
     simulation = sim_robot.SimulatedRobot(scene_factory(), robot_config)
     servos = virtual_lib.make_servos(virtual_lib.robot_motor_ids(robot_config))

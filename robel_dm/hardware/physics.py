@@ -21,10 +21,11 @@ import mujoco
 import numpy as np
 
 from robel_dm.hardware import clock as clock_lib
-from robel_dm.hardware import control_table as table
-from robel_dm.hardware import dynamixel, resets
+from robel_dm.hardware import resets
 from robel_dm.hardware import robot as robot_lib
 from robel_dm.hardware import timing as timing_lib
+from robel_dm.hardware.dynamixel import client as dynamixel
+from robel_dm.hardware.dynamixel import control_table as table
 
 # Late control steps are logged at most this often, s (all are counted).
 _OVERRUN_LOG_INTERVAL = 1.0

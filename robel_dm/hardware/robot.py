@@ -6,8 +6,8 @@ import time
 import numpy as np
 
 from robel_dm.hardware import config as config_lib
-from robel_dm.hardware import control_table as table
-from robel_dm.hardware import dynamixel
+from robel_dm.hardware.dynamixel import client as dynamixel
+from robel_dm.hardware.dynamixel import control_table as table
 
 # One sync read covers input voltage and temperature (addresses 144..146);
 # it reads 4 bytes because dynamixel_sdk decodes only 1, 2 or 4.

@@ -40,7 +40,9 @@ from typing import Any
 import numpy as np
 
 from robel_dm import policies, recording, suite
-from robel_dm.hardware import dynamixel_errors, resets, tracking
+from robel_dm.hardware import resets
+from robel_dm.hardware.dynamixel import errors as dynamixel_errors
+from robel_dm.hardware.tracking import tracker as tracking
 from robel_dm.learning import agents, demos
 from robel_dm.learning import learner as learner_lib
 from robel_dm.learning import train as train_lib
@@ -74,7 +76,7 @@ class RobotOptions:
     reset: the reset procedure ('scripted', 'move', 'manual'); the
       robot's default if None.
     guide: D'Claw Turn/Screw guide motor mode, or None.
-    tracker: a D'Kitty's motion tracker spec (`hardware.tracker_spec`).
+    tracker: a D'Kitty's motion tracker spec (`hardware.tracking.spec`).
     dynamics: with 'virtual', a calibration of the simulated robot.
     hours: wall-clock budget of this session, h (None: `steps` only).
     max_violations: an episode ends early once its safety violations
@@ -117,7 +119,7 @@ class RobotOptions:
     """The task's environment on the robot."""
     tracker = None
     if self.tracker is not None:
-      from robel_dm.hardware import tracker_spec  # noqa: PLC0415
+      from robel_dm.hardware.tracking import spec as tracker_spec  # noqa: PLC0415
 
       tracker = tracker_spec.make_tracker(self.tracker)
     return suite.load(

@@ -23,7 +23,7 @@ from scipy import optimize, sparse
 
 from robel_dm import calibration as calibration_lib
 from robel_dm import recording
-from robel_dm.hardware import control_table
+from robel_dm.hardware.dynamixel import control_table
 from robel_dm.tasks import excitation
 
 # Residual scales: a difference of this size counts as 1, so that angles,

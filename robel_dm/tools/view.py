@@ -1,6 +1,7 @@
 r"""Opens dm_control's interactive viewer on a robel_dm task.
 
-    python -m robel_dm.view --domain=dclaw --task=turn_fixed --policy=reference
+    python -m robel_dm.tools.view --domain=dclaw --task=pose_fixed \
+        --policy=reference
 
 The viewer draws into a window, so it needs a display and MuJoCo's `glfw`
 OpenGL backend: this command selects `glfw` when MUJOCO_GL is unset, and

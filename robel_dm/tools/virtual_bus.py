@@ -1,6 +1,6 @@
 """The virtual bus's command line: a robot's motors on a pseudo-terminal.
 
-  python -m robel_dm.hardware.virtual --robot=dclaw
+  python -m robel_dm.tools.virtual_bus --robot=dclaw
 
 prints the device path of a pseudo-terminal on which a virtual servo bus
 serves every motor of the robot's shipped configuration (or of `--config`),
@@ -42,7 +42,7 @@ def _simulated_robot(
 ) -> Driver:
   # Imported here: they need MuJoCo, and the command line builds the scene.
   from robel_dm import suite  # noqa: PLC0415
-  from robel_dm.hardware import sim_robot  # noqa: PLC0415
+  from robel_dm.hardware.virtual import sim_robot  # noqa: PLC0415
 
   scene = suite.load(
     robot_config.robot,
@@ -91,9 +91,6 @@ def build_bus(
 def _define_flags():
   from absl import flags  # Command line only.
 
-  # The flags then belong to the module that calls `main` (the package's
-  # `__main__`), whose flags `--help` lists.
-  flags.disclaim_key_flags()
   return {
     'robot': flags.DEFINE_string(
       'robot', 'dclaw', 'Robot whose shipped configuration to serve.'
@@ -166,3 +163,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     return _serve_until_signalled(flag_values)
 
   app.run(run, argv=argv)
+
+
+if __name__ == '__main__':
+  main()

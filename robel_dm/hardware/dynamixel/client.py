@@ -29,19 +29,20 @@ import threading
 
 import numpy as np
 
-from robel_dm.hardware import control_table as table
-from robel_dm.hardware import port as port_lib
-from robel_dm.hardware import register_access, shutdown
+from robel_dm.hardware import shutdown
+from robel_dm.hardware.dynamixel import control_table as table
+from robel_dm.hardware.dynamixel import port as port_lib
 
 # Re-exported: callers catch `dynamixel.DynamixelError` and its subclasses.
-from robel_dm.hardware.dynamixel_errors import (  # noqa: F401
+from robel_dm.hardware.dynamixel import register_access
+from robel_dm.hardware.dynamixel.errors import (  # noqa: F401
   DynamixelError,
   MissingMotorError,
   MotorFaultError,
   RobotReleasedError,
   describe_hardware_errors,
 )
-from robel_dm.hardware.port import PortBusyError, PortError  # noqa: F401
+from robel_dm.hardware.dynamixel.port import PortBusyError, PortError  # noqa: F401
 
 try:
   import dynamixel_sdk as sdk

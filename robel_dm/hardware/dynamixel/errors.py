@@ -1,10 +1,10 @@
 """The errors of the Dynamixel client, and how hardware errors read.
 
-`dynamixel.DynamixelClient` raises them; `dynamixel` re-exports them, so
-callers catch `dynamixel.DynamixelError` and its subclasses.
+`client.DynamixelClient` raises them; `client` re-exports them, so callers
+catch `client.DynamixelError` and its subclasses.
 """
 
-from robel_dm.hardware import control_table as table
+from robel_dm.hardware.dynamixel import control_table as table
 
 
 class DynamixelError(RuntimeError):

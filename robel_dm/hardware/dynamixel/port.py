@@ -18,7 +18,7 @@ import termios
 
 import serial
 
-from robel_dm.hardware.dynamixel_errors import DynamixelError
+from robel_dm.hardware.dynamixel.errors import DynamixelError
 
 # What the OS and pyserial raise when a port fails.
 OS_ERRORS = (OSError, termios.error, serial.SerialException)

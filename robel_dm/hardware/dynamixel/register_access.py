@@ -14,8 +14,8 @@ that keeps answering so is named in a `DynamixelError`.
 
 import time
 
-from robel_dm.hardware import control_table as table
-from robel_dm.hardware.dynamixel_errors import (
+from robel_dm.hardware.dynamixel import control_table as table
+from robel_dm.hardware.dynamixel.errors import (
   DynamixelError,
   MissingMotorError,
   MotorFaultError,

@@ -12,7 +12,7 @@ from collections.abc import Iterable, Sequence
 import dataclasses
 
 from robel_dm.hardware import config as config_lib
-from robel_dm.hardware import control_table as table
+from robel_dm.hardware.dynamixel import control_table as table
 from robel_dm.hardware.scan.probe import MotorReport
 
 _FULL_POSITION_RANGE = (0, 4_095)

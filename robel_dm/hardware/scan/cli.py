@@ -24,8 +24,8 @@ import sys
 from typing import TextIO
 
 from robel_dm.hardware import config as config_lib
-from robel_dm.hardware import control_table as table
-from robel_dm.hardware import dynamixel
+from robel_dm.hardware.dynamixel import client as dynamixel
+from robel_dm.hardware.dynamixel import control_table as table
 from robel_dm.hardware.scan import report as report_lib
 from robel_dm.hardware.scan.checks import (
   errors,

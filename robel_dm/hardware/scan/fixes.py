@@ -10,8 +10,8 @@ import contextlib
 import dataclasses
 
 from robel_dm.hardware import config as config_lib
-from robel_dm.hardware import control_table as table
-from robel_dm.hardware import dynamixel
+from robel_dm.hardware.dynamixel import client as dynamixel
+from robel_dm.hardware.dynamixel import control_table as table
 from robel_dm.hardware.scan.checks import label
 from robel_dm.hardware.scan.probe import (
   US_PER_RETURN_DELAY_UNIT,

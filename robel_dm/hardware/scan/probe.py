@@ -8,8 +8,8 @@ from collections.abc import Iterable
 import contextlib
 import dataclasses
 
-from robel_dm.hardware import control_table as table
-from robel_dm.hardware import dynamixel
+from robel_dm.hardware.dynamixel import client as dynamixel
+from robel_dm.hardware.dynamixel import control_table as table
 
 MAX_ID = 252
 ALL_IDS = tuple(range(MAX_ID + 1))

@@ -3,7 +3,7 @@
 from collections.abc import Sequence
 
 from robel_dm.hardware import config as config_lib
-from robel_dm.hardware import control_table as table
+from robel_dm.hardware.dynamixel import control_table as table
 from robel_dm.hardware.scan.checks import (
   Problem,
   configured_motors,

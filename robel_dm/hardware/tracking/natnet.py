@@ -85,7 +85,7 @@ import time
 
 import numpy as np
 
-from robel_dm.hardware import tracking
+from robel_dm.hardware.tracking import tracker as tracking
 
 NAT_CONNECT = 0
 NAT_FRAMEOFDATA = 7

@@ -23,7 +23,8 @@ import ipaddress
 import re
 import socket
 
-from robel_dm.hardware import natnet, tracking
+from robel_dm.hardware.tracking import natnet
+from robel_dm.hardware.tracking import tracker as tracking
 
 _SCHEME = 'natnet:'
 _OPTIONS = (

@@ -11,9 +11,9 @@ packets with it (docs/dynamixel.md section 4):
 
 Modules: `servo` (a servo's control table and firmware, on the rules in
 `registers`), `bus` (packet dispatch and the drivers that move the motors),
-`faults` (injected communication failures), `transport` (the
-pseudo-terminal) and `cli` (`python -m robel_dm.hardware.virtual
---robot=dclaw` serves a robot's motors and prints the device path).
+`faults` (injected communication failures) and `transport` (the
+pseudo-terminal). `python -m robel_dm.tools.virtual_bus --robot=dclaw`
+serves a robot's motors and prints the device path.
 """
 
 from robel_dm.hardware.virtual.bus import (
@@ -22,7 +22,6 @@ from robel_dm.hardware.virtual.bus import (
   IdealDriver,
   robot_motor_ids,
 )
-from robel_dm.hardware.virtual.cli import DRIVERS, build_bus
 from robel_dm.hardware.virtual.faults import Faults
 from robel_dm.hardware.virtual.servo import (
   DEFAULT_FIRMWARE,
@@ -37,14 +36,12 @@ __all__ = [
   'DEFAULT_FIRMWARE',
   'DEFAULT_MODEL_NUMBER',
   'DEFAULT_TEMPERATURE',
-  'DRIVERS',
   'Bus',
   'Driver',
   'Faults',
   'IdealDriver',
   'PtyBusServer',
   'VirtualServo',
-  'build_bus',
   'make_servos',
   'robot_motor_ids',
 ]

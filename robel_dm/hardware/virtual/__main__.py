@@ -1,9 +1,13 @@
-"""Runs the virtual bus's command line (`cli`)."""
+"""Points to the virtual bus's command line, `robel_dm.tools.virtual_bus`.
 
-from robel_dm.hardware.virtual import cli
+Importing it from here would make the hardware layer import the suite above
+it; this stub only points the way.
+"""
 
-# absl's --help prints the main module's docstring: make it the command's.
-__doc__ = cli.__doc__
+import sys
 
 if __name__ == '__main__':
-  cli.main()
+  sys.exit(
+    'the virtual bus is served by `python -m robel_dm.tools.virtual_bus` '
+    '(same flags)'
+  )

@@ -21,8 +21,9 @@ import dataclasses
 import threading
 from typing import Protocol
 
-from robel_dm.hardware import config, protocol
-from robel_dm.hardware.protocol import Error, Instruction
+from robel_dm.hardware import config
+from robel_dm.hardware.dynamixel import protocol
+from robel_dm.hardware.dynamixel.protocol import Error, Instruction
 from robel_dm.hardware.virtual.faults import Faults
 from robel_dm.hardware.virtual.servo import VirtualServo
 

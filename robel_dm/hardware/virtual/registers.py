@@ -8,8 +8,8 @@ keeps, and each model's factory limits (docs/dynamixel.md section 2).
 
 import dataclasses
 
-from robel_dm.hardware import control_table as table
-from robel_dm.hardware import protocol
+from robel_dm.hardware.dynamixel import control_table as table
+from robel_dm.hardware.dynamixel import protocol
 
 SIZE = table.CONTROL_TABLE_SIZE
 

@@ -19,9 +19,9 @@ import operator
 import threading
 import time
 
-from robel_dm.hardware import control_table as table
-from robel_dm.hardware import protocol
-from robel_dm.hardware.protocol import Error
+from robel_dm.hardware.dynamixel import control_table as table
+from robel_dm.hardware.dynamixel import protocol
+from robel_dm.hardware.dynamixel.protocol import Error
 from robel_dm.hardware.virtual import registers
 
 DEFAULT_MODEL_NUMBER = 1040  # XH430-V350, as on ROBEL's robots.

@@ -16,7 +16,7 @@ from dm_control import composer
 import mujoco
 
 from robel_dm.hardware import config as config_lib
-from robel_dm.hardware import control_table as table
+from robel_dm.hardware.dynamixel import control_table as table
 
 # Position gain (N m/rad) and damping (N m s/rad) of an auxiliary motor
 # holding a goal (the valve during resets); it has no actuator in the model.

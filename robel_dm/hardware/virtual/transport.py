@@ -18,8 +18,8 @@ import threading
 import time
 import tty
 
-from robel_dm.hardware import control_table as table
-from robel_dm.hardware import protocol
+from robel_dm.hardware.dynamixel import control_table as table
+from robel_dm.hardware.dynamixel import protocol
 from robel_dm.hardware.virtual.bus import Bus
 
 # termios speed constants -> bits per second, for the rates servos support.
