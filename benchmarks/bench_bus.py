@@ -28,6 +28,7 @@ from robel_dm import suite
 from robel_dm.entities import dkitty
 from robel_dm.hardware import config as config_lib
 from robel_dm.hardware import environment as hardware
+from robel_dm.hardware import options
 from robel_dm.hardware.dynamixel import client as dynamixel
 from robel_dm.hardware.dynamixel import control_table as table
 
@@ -95,7 +96,7 @@ def control_loop(device_path: str, robot: str, steps: int) -> dict:
   env = hardware.make_environment(
     task,
     domain=robot,
-    device_path=device_path,
+    robot=options.RobotOptions(device_path),
     torso_source=(lambda: standing) if task.root_joint is not None else None,
     time_limit=float('inf'),
   )

@@ -54,7 +54,11 @@ def recovery(domain, signal, seed, duration, use_current) -> dict:
   truth = _truth(domain, seed)
   with tempfile.TemporaryDirectory() as directory:
     env = suite.load_excitation(
-      domain, duration, seed=seed, device_path='virtual', dynamics=truth
+      domain,
+      duration,
+      seed=seed,
+      dynamics=truth,
+      robot=suite.RobotOptions('virtual'),
     )
     metadata = {'kind': 'excitation', 'domain': domain}
     env = recording.Recorder(env, directory, metadata=metadata)

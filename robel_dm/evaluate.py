@@ -98,6 +98,28 @@ def summarize(
   }
 
 
+# The flags that make a `suite.RobotOptions` (with --device_path).
+ROBOT_OPTION_FLAGS = ('robot_config', 'reset', 'guide', 'tracker')
+
+
+def robot_options(flag_values) -> suite.RobotOptions | None:
+  """The robot --device_path and ROBOT_OPTION_FLAGS name; None simulates.
+
+  Raises:
+    ValueError: for one of those flags without --device_path, or a bad
+      value.
+  """
+  fields = {name: flag_values[name].value for name in ROBOT_OPTION_FLAGS}
+  if not flag_values['device_path'].value:
+    given = [name for name, value in fields.items() if value is not None]
+    if given:
+      raise ValueError(
+        f'--{given[0]} needs --device_path (it is about a robot)'
+      )
+    return None
+  return suite.RobotOptions(flag_values['device_path'].value, **fields)
+
+
 def evaluate(
   domain: str,
   task: str,
@@ -106,15 +128,11 @@ def evaluate(
   seed: int | None = 0,
   task_kwargs: dict[str, Any] | None = None,
   log_every: int = 0,
-  device_path: str | None = None,
-  robot_config: str | None = None,
-  reset: str | None = None,
-  guide: str | None = None,
+  robot: suite.RobotOptions | None = None,
   on_episode=None,
   video_dir: str | None = None,
   camera: str | None = None,
   workers: int = 1,
-  tracker: str | None = None,
   ray_address: str | None = None,
   record: str | None = None,
   dynamics: str | None = None,
@@ -134,10 +152,8 @@ def evaluate(
     seed: seed of the episodes and the policy; None draws fresh ones.
     task_kwargs: task arguments for `suite.load`.
     log_every: log progress every this many episodes (0: never).
-    device_path: run on a robot (see `suite.load`); None simulates.
-    robot_config: robot configuration file for `device_path`.
-    reset: reset procedure for `device_path` (see `suite.load`).
-    guide: guide motor mode for `device_path` (see `suite.load`).
+    robot: run on this robot (`suite.RobotOptions`: device, configuration,
+      reset, guide motor, tracker); None simulates.
     on_episode: called with the results so far after every episode (to
       print rows and save partial results as they come).
     video_dir: write one MP4 per episode here (`robel_dm.video`).
@@ -151,9 +167,6 @@ def evaluate(
       (`robel_dm.recording`; checked before anything moves).
     dynamics: a calibration file of the simulated robot (see
       `suite.load` and docs/sysid.md).
-    tracker: with `device_path`, a D'Kitty's motion tracker as a spec
-      (`robel_dm.hardware.tracking.spec`), e.g.
-      'natnet:10.0.0.5,rigid_body=1,target=2'.
 
   Returns:
     A JSON-serializable dict of per-episode records, summary metrics,
@@ -168,12 +181,7 @@ def evaluate(
   if workers < 1:
     raise ValueError(f'workers must be >= 1, got {workers}')
   if (workers > 1 or ray_address) and (
-    callable(policy)
-    or device_path
-    or video_dir
-    or record
-    or dynamics
-    or seed is None
+    callable(policy) or robot or video_dir or record or dynamics or seed is None
   ):
     raise ValueError(
       'workers > 1 and ray_address need a simulated task, a seed, no video, '
@@ -182,20 +190,12 @@ def evaluate(
   # A policy file is read and checked against the task before anything is
   # built (and a robot moves); None for policies that are not files.
   checked = policies.check_file(policy, domain, task, task_kwargs)
-  if tracker is not None:
-    from robel_dm.hardware.tracking import spec as tracker_spec  # noqa: PLC0415
-
-    tracker = tracker_spec.make_tracker(tracker)
   env = suite.load(
     domain,
     task,
     seed=seed,
     task_kwargs=task_kwargs,
-    device_path=device_path,
-    robot_config=robot_config,
-    reset=reset,
-    guide=guide,
-    tracker=tracker,
+    robot=robot,
     dynamics=dynamics,
   )
   if record is not None:
@@ -209,7 +209,7 @@ def evaluate(
           'task_kwargs': task_kwargs or {},
           'seed': seed,
           'policy': policy if isinstance(policy, str) else repr(policy),
-          'device_path': device_path,
+          'device_path': robot and robot.device_path,
           'dynamics': dynamics,
         },
       )
@@ -222,7 +222,7 @@ def evaluate(
     'task_kwargs': task_kwargs or {},
     'policy': policy if isinstance(policy, str) else repr(policy),
     'seed': seed,
-    'device_path': device_path,
+    'device_path': robot and robot.device_path,
     'dynamics': dynamics,
     'provenance': provenance.describe(),
   }
@@ -466,6 +466,7 @@ def main(argv):
       print(result_table.format_row(index, partial['records'][-1]), flush=True)
       progress.refresh()
 
+    robot = robot_options(FLAGS)
     for domain, task in tasks:
       results = evaluate(
         domain,
@@ -475,15 +476,11 @@ def main(argv):
         or FLAGS.policy,
         seed=FLAGS.seed,
         task_kwargs=task_kwargs,
-        device_path=FLAGS.device_path,
-        robot_config=FLAGS.robot_config,
-        reset=FLAGS.reset,
-        guide=FLAGS.guide,
+        robot=robot,
         on_episode=save,
         video_dir=FLAGS.video,
         camera=FLAGS.camera,
         workers=FLAGS.workers,
-        tracker=FLAGS.tracker,
         ray_address=FLAGS.ray_address,
         record=FLAGS.record,
         dynamics=FLAGS.dynamics,

@@ -22,6 +22,7 @@ from robel_dm.environment import Environment
 # thread importing the suite (the main thread, as a rule): only the main
 # thread can install them, and a robot may be driven from another thread.
 from robel_dm.hardware import shutdown  # noqa: F401, I001
+from robel_dm.hardware.options import RobotOptions
 from robel_dm.tasks import (  # noqa: F401  (imported to register the tasks)
   base,
   dclaw_pose,
@@ -84,9 +85,10 @@ def load(
   *,
   seed: int | None = None,
   time_limit: float | None = None,
+  robot: RobotOptions | None = None,
   device_path: str | None = None,
   robot_config=None,
-  reset: str | None = None,
+  reset=None,
   tracker=None,
   guide: str | None = None,
   dynamics: Dynamics | None = None,
@@ -105,19 +107,12 @@ def load(
       ends at the first control step at or after this time.
     task_kwargs: keyword arguments of the task, e.g. `{'valve': 'valve4'}`.
     environment_kwargs: extra `composer.Environment` arguments.
-    device_path: run on a real robot: the Dynamixel bus's serial device
-      (e.g. '/dev/ttyUSB0'), or 'virtual' for an in-process virtual bus
-      driven by a simulation. None (default) simulates.
-    robot_config: with `device_path`: a `RobotConfig` or the path of a JSON
-      robot configuration; ROBEL's configuration of the domain by default.
-    reset: with `device_path`: 'scripted', 'move' or 'manual' (see
-      `robel_dm.hardware.resets`); the robot's default if None.
-    tracker: with `device_path`: a
-      `robel_dm.hardware.tracking.tracker.TorsoTracker` giving the D'Kitty's
-      torso pose (and Orient/Walk targets).
-    guide: with `device_path`, for D'Claw Turn/Screw: ROBEL's guide motor
-      'show's the goal, or ('interactive') a person turns it to set the
-      goal.
+    robot: run on a robot: a `RobotOptions` (its bus's device, e.g.
+      '/dev/ttyUSB0', or 'virtual' for an in-process virtual bus driven by
+      a simulation; its configuration, reset, guide motor and tracker).
+      None (default) simulates.
+    device_path, robot_config, reset, tracker, guide: instead of `robot`,
+      the fields of a `RobotOptions` built here (`device_path` is needed).
     dynamics: a calibration (file path or `calibration.Calibration`, e.g.
       from `python -m robel_dm.sysid fit`) of the simulated robot's joint
       dynamics and control delay. With device_path='virtual' it calibrates
@@ -167,15 +162,33 @@ def load(
     seed=seed,
     time_limit=time_limit,
     environment_kwargs=environment_kwargs,
-    device_path=device_path,
+    robot=_robot_options(
+      robot,
+      device_path=device_path,
+      robot_config=robot_config,
+      reset=reset,
+      tracker=tracker,
+      guide=guide,
+    ),
     dynamics=dynamics,
-    hardware_options={
-      'robot_config': robot_config,
-      'reset': reset,
-      'tracker': tracker,
-      'guide': guide,
-    },
   )
+
+
+def _robot_options(robot: RobotOptions | None, **fields) -> RobotOptions | None:
+  """`robot`, or the options the keyword arguments give (None: simulate)."""
+  given = [name for name, value in fields.items() if value is not None]
+  if robot is not None:
+    if given:
+      raise ValueError(
+        f'pass either robot= or {", ".join(given)}, not both (they are '
+        'fields of robot=)'
+      )
+    return robot
+  if fields['device_path'] is None:
+    if given:
+      raise ValueError(f'{", ".join(given)} need a device_path (a robot)')
+    return None
+  return RobotOptions(**fields)
 
 
 def load_excitation(
@@ -183,8 +196,7 @@ def load_excitation(
   duration: float,
   *,
   seed: int | None = None,
-  device_path: str | None = None,
-  robot_config=None,
+  robot: RobotOptions | None = None,
   dynamics: Dynamics | None = None,
 ) -> Environment:
   """The joint-excitation environment of system identification.
@@ -197,8 +209,7 @@ def load_excitation(
     domain: 'dclaw' or 'dkitty'.
     duration: episode length, s.
     seed: the environment's seed.
-    device_path: a robot's bus (or 'virtual'), as for `load`.
-    robot_config: with `device_path`, as for `load`.
+    robot: a robot to run on, as for `load`; None simulates.
     dynamics: a calibration of the simulated robot, as for `load`.
 
   Returns:
@@ -212,9 +223,8 @@ def load_excitation(
     seed=seed,
     time_limit=None,
     environment_kwargs=None,
-    device_path=device_path,
+    robot=robot,
     dynamics=dynamics,
-    hardware_options={'robot_config': robot_config},
   )
 
 
@@ -225,9 +235,8 @@ def _environment(
   seed,
   time_limit,
   environment_kwargs,
-  device_path,
+  robot: RobotOptions | None,
   dynamics,
-  hardware_options,
 ) -> Environment:
   """Wraps a new task in a simulated or hardware environment."""
   task_instance = make_task()
@@ -245,16 +254,13 @@ def _environment(
   calibration = None
   if dynamics is not None:
     calibration = calibration_lib.resolve(dynamics)
-    if device_path not in (None, constants.VIRTUAL_DEVICE):
+    if robot is not None and not robot.virtual:
       raise ValueError(
         f'dynamics= calibrates a simulated robot; the robot on '
-        f'{device_path} has its own (device_path=None or '
+        f'{robot.device_path} has its own (no robot, or device_path '
         f'{constants.VIRTUAL_DEVICE!r})'
       )
-  if device_path is None:
-    given = [name for name, value in hardware_options.items() if value]
-    if given:
-      raise ValueError(f'{", ".join(given)} need a device_path (a robot)')
+  if robot is None:
     control_delay = 0.0
     if calibration is not None:
       robot = task_instance.robot
@@ -280,18 +286,16 @@ def _environment(
       seed=seed,
       time_limit=math.inf,
       environment_kwargs=None,
-      device_path=None,
+      robot=None,
       dynamics=calibration,
-      hardware_options={},
     )
 
   return hardware.make_environment(
     task_instance,
     domain=domain,
-    device_path=device_path,
+    robot=robot,
     scene_factory=simulated_scene,
     time_limit=time_limit,
     random_state=seed,
-    **hardware_options,
     **(environment_kwargs or {}),
   )

@@ -104,10 +104,10 @@ def _define_flags() -> None:
   )
 
 
-# Flags that only mean something on a robot.
-_ROBOT_FLAGS = ('robot_config', 'reset', 'guide', 'tracker', 'dynamics',
-                'hours', 'max_violations', 'reset_attempts',
-                'updates_per_step')  # fmt: skip
+# Flags of a run on a robot beyond the robot itself (evaluate's
+# ROBOT_OPTION_FLAGS).
+_ROBOT_RUN_FLAGS = ('dynamics', 'hours', 'max_violations', 'reset_attempts',
+                    'updates_per_step')  # fmt: skip
 
 
 FLAGS = flags.FLAGS
@@ -143,18 +143,19 @@ def main(argv):
       from_recording=tuple(FLAGS.from_recording),
     )
     log = lambda line: print(line, flush=True)  # noqa: E731
-    if FLAGS.device_path:
+    robot_options = evaluate.robot_options(FLAGS)
+    if robot_options is not None:
       from robel_dm.learning import robot  # noqa: PLC0415
 
-      options = robot.RobotOptions(
-        device_path=FLAGS.device_path,
-        **{name: FLAGS[name].value for name in _ROBOT_FLAGS},
+      options = robot.RobotRunOptions(
+        robot_options,
+        **{name: FLAGS[name].value for name in _ROBOT_RUN_FLAGS},
       )
       robot.train_on_robot(
         config, options, FLAGS.output_dir, resume=FLAGS.resume, log=log
       )
     else:
-      given = [name for name in _ROBOT_FLAGS if FLAGS[name].present]
+      given = [name for name in _ROBOT_RUN_FLAGS if FLAGS[name].present]
       if given:
         raise ValueError(
           f'--{given[0]} needs --device_path (it is about a robot)'

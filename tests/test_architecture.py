@@ -188,3 +188,23 @@ def test_the_adapter_documents_every_private_name_it_uses():
 def test_modules_stay_small(module):
   lines = len(module.read_text().splitlines())
   assert lines <= _MAX_MODULE_LINES, f'{module.name}: {lines} lines'
+
+
+def test_hardware_options_and_connection_are_typed():
+  # One typed value travels down; no field is typed `object` or untyped.
+  for path in ('hardware/options.py', 'hardware/connection.py'):
+    tree = ast.parse((_PACKAGE / path).read_text())
+    classes = [n for n in tree.body if isinstance(n, ast.ClassDef)]
+    fields = [
+      node
+      for cls in classes
+      for node in cls.body
+      if isinstance(node, ast.AnnAssign)
+    ]
+    assert fields, path
+    untyped = [
+      ast.unparse(f.target)
+      for f in fields
+      if ast.unparse(f.annotation) == 'object'
+    ]
+    assert not untyped, f'{path}: {untyped}'

@@ -407,8 +407,7 @@ def test_unknown_device_configuration_mismatch_is_rejected(tmp_path):
     hardware_env.make_environment(
       suite.registry.DCLAW['pose_fixed'](),
       domain='dclaw',
-      device_path='virtual',
-      robot_config=str(path),
+      robot=suite.RobotOptions('virtual', robot_config=str(path)),
     )
 
 
@@ -433,7 +432,11 @@ def test_hardware_reset_moves_to_the_initial_pose_without_simulated_settling():
 
 def test_evaluation_runs_on_the_virtual_bus():
   results = evaluate.evaluate(
-    'dclaw', 'pose_fixed', episodes=2, policy='reference', device_path='virtual'
+    'dclaw',
+    'pose_fixed',
+    episodes=2,
+    policy='reference',
+    robot=suite.RobotOptions('virtual'),
   )
   assert results['device_path'] == 'virtual'
   assert results['success_rate'] == 1.0

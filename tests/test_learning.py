@@ -178,7 +178,11 @@ def test_saved_policy_runs_on_the_virtual_bus(tmp_path):
   pytest.importorskip('dynamixel_sdk')  # The hardware extra.
   path = _tiny_policy(tmp_path)
   results = evaluate.evaluate(
-    'dclaw', 'pose_fixed', 1, policy=str(path), device_path='virtual'
+    'dclaw',
+    'pose_fixed',
+    1,
+    policy=str(path),
+    robot=suite.RobotOptions('virtual'),
   )
   assert results['episodes'] == 1 and results['device_path'] == 'virtual'
 
@@ -222,6 +226,10 @@ def test_the_pose_baseline_runs_on_the_virtual_bus(monkeypatch):
   # can miss the SDK's ~34 ms deadline, which is not what this tests.
   monkeypatch.setattr(sdk.port_handler, 'LATENCY_TIMER', 500)
   results = evaluate.evaluate(
-    'dclaw', 'pose_fixed', 1, policy='baseline', device_path='virtual'
+    'dclaw',
+    'pose_fixed',
+    1,
+    policy='baseline',
+    robot=suite.RobotOptions('virtual'),
   )
   assert results['success_rate'] == 1.0

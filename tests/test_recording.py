@@ -12,7 +12,7 @@ import pytest
 
 pytest.importorskip('pyarrow')
 
-from robel_dm import evaluate, policies, recording  # noqa: E402
+from robel_dm import evaluate, policies, recording, suite  # noqa: E402
 
 
 def test_every_field_round_trips_in_simulation(tmp_path):
@@ -55,8 +55,8 @@ def test_parquet_files_open_with_pyarrow_alone(tmp_path):
 def test_motor_state_is_recorded_on_the_virtual_bus(tmp_path):
   pytest.importorskip('dynamixel_sdk')
   evaluate.evaluate(
-    'dclaw', 'pose_fixed', 1, policy='zero', device_path='virtual',
-    record=str(tmp_path),
+    'dclaw', 'pose_fixed', 1, policy='zero',
+    robot=suite.RobotOptions('virtual'), record=str(tmp_path),
   )  # fmt: skip
   (episode,) = recording.read(tmp_path)
   for column in ('motor.position', 'motor.velocity', 'motor.current'):

@@ -1,5 +1,7 @@
 """Hardware resets on the virtual bus (robel_dm.hardware.resets)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -283,3 +285,17 @@ def test_dkitty_manual_reset_waits_until_the_robot_is_stood_up():
       env.reset()
   finally:
     env.close()
+
+
+def test_robot_options_are_one_checked_value():
+  with pytest.raises(ValueError, match='guide must be one of'):
+    suite.RobotOptions('virtual', guide='point')
+  with pytest.raises(ValueError, match='device_path must name a bus'):
+    suite.RobotOptions('')
+  with pytest.raises(ValueError, match='either robot= or reset'):
+    suite.load(
+      'dclaw', 'pose_fixed', robot=suite.RobotOptions('virtual'), reset='move'
+    )
+  options = suite.RobotOptions('virtual', reset='move')
+  with pytest.raises(dataclasses.FrozenInstanceError):
+    options.reset = 'manual'

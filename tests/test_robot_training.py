@@ -19,7 +19,7 @@ import pytest
 pytest.importorskip('sbx')
 pytest.importorskip('dynamixel_sdk')
 
-from robel_dm import recording  # noqa: E402
+from robel_dm import recording, suite  # noqa: E402
 from robel_dm.learning import learner, robot  # noqa: E402
 from robel_dm.learning import train as train_lib  # noqa: E402
 from tests import child_signals  # noqa: E402
@@ -29,7 +29,8 @@ CONFIG = train_lib.RunConfig(
   domain='dclaw', task='pose_fixed', steps=700, eval_every=640,
   eval_episodes=1,
 )  # fmt: skip
-VIRTUAL = robot.RobotOptions(device_path='virtual')
+_VIRTUAL_BUS = suite.RobotOptions('virtual')
+VIRTUAL = robot.RobotRunOptions(_VIRTUAL_BUS)
 
 
 def _rows(path: pathlib.Path) -> list[dict]:
@@ -43,7 +44,7 @@ def _recorded_steps(directory: pathlib.Path) -> int:
 def _inject(monkeypatch, on_step) -> list:
   """Calls `on_step(env, n)` before every robot step n of the run."""
   envs = []
-  load = robot.RobotOptions.load
+  load = robot.RobotRunOptions.load
 
   def load_and_watch(options, config, seed):
     env = load(options, config, seed)
@@ -58,7 +59,7 @@ def _inject(monkeypatch, on_step) -> list:
     envs.append(env)
     return env
 
-  monkeypatch.setattr(robot.RobotOptions, 'load', load_and_watch)
+  monkeypatch.setattr(robot.RobotRunOptions, 'load', load_and_watch)
   return envs
 
 
@@ -132,7 +133,7 @@ def test_a_robot_that_cannot_be_reset_stops_the_run_saved(
       env.virtual_bus.faults.set_absent(21)
 
   envs = _inject(monkeypatch, unplug)
-  options = robot.RobotOptions(device_path='virtual', reset_attempts=2)
+  options = robot.RobotRunOptions(_VIRTUAL_BUS, reset_attempts=2)
   with pytest.raises(RuntimeError, match='could not be reset 2 times'):
     robot.train_on_robot(CONFIG, options, tmp_path, log=lambda line: None)
   # Every motor that answers is released (the unplugged one cannot hear).
@@ -143,7 +144,7 @@ def test_a_robot_that_cannot_be_reset_stops_the_run_saved(
 
 
 def test_an_episode_ends_at_the_safety_threshold(tmp_path):
-  options = robot.RobotOptions(device_path='virtual', max_violations=50)
+  options = robot.RobotRunOptions(_VIRTUAL_BUS, max_violations=50)
   config = CONFIG.__class__(**{**CONFIG.__dict__, 'steps': 300})
   robot.train_on_robot(config, options, tmp_path, log=lambda line: None)
   progress = _rows(tmp_path / robot.PROGRESS_LOG)
@@ -156,11 +157,13 @@ def test_an_episode_ends_at_the_safety_threshold(tmp_path):
 
 _KILLABLE = """
 import sys
+from robel_dm import suite
 from robel_dm.learning import robot, train
 config = train.RunConfig(domain='dclaw', task='pose_fixed', steps=100000,
                          eval_every=100000, eval_episodes=1)
-robot.train_on_robot(config, robot.RobotOptions(device_path='virtual'),
-                     sys.argv[1], log=lambda line: print(line, flush=True))
+options = robot.RobotRunOptions(suite.RobotOptions('virtual'))
+robot.train_on_robot(config, options, sys.argv[1],
+                     log=lambda line: print(line, flush=True))
 """
 
 
@@ -245,12 +248,12 @@ def test_learning_starts_from_a_recording(tmp_path):
 @pytest.mark.parametrize(
   'options, config, message',
   [
-    (robot.RobotOptions('virtual', hours=0), CONFIG, 'hours must be > 0'),
-    (robot.RobotOptions('virtual'), CONFIG.__class__(
+    (robot.RobotRunOptions(_VIRTUAL_BUS, hours=0), CONFIG, 'hours must be > 0'),
+    (robot.RobotRunOptions(_VIRTUAL_BUS), CONFIG.__class__(
       domain='dclaw', task='pose_fixed', algo='ppo'), 'must be one of'),
-    (robot.RobotOptions('virtual', max_violations=0), CONFIG,
+    (robot.RobotRunOptions(_VIRTUAL_BUS, max_violations=0), CONFIG,
      'max_violations must be >= 1'),
-    (robot.RobotOptions('virtual', updates_per_step=0), CONFIG,
+    (robot.RobotRunOptions(_VIRTUAL_BUS, updates_per_step=0), CONFIG,
      'updates_per_step must be in'),
   ],
 )  # fmt: skip
@@ -265,7 +268,7 @@ def test_bad_robot_options_are_refused_before_the_robot_moves(
 def test_resuming_with_other_robot_options_is_refused(tmp_path):
   (tmp_path / train_lib.CONFIG).write_text(json.dumps(CONFIG.to_json()))
   (tmp_path / robot.ROBOT).write_text(
-    json.dumps({**VIRTUAL.__dict__, 'max_violations': 5})
+    json.dumps({**VIRTUAL.to_json(), 'max_violations': 5})
   )
   with pytest.raises(ValueError, match='max_violations: 5'):
     robot.train_on_robot(CONFIG, VIRTUAL, tmp_path, resume=True)

@@ -46,7 +46,11 @@ def _truth(seed=1, delay=0.0075) -> calibration.Calibration:
 
 def _record_excitation(directory, duration, device_path=None, dynamics=None):
   env = suite.load_excitation(
-    'dclaw', duration, seed=0, device_path=device_path, dynamics=dynamics
+    'dclaw',
+    duration,
+    seed=0,
+    dynamics=dynamics,
+    robot=device_path and suite.RobotOptions(device_path),
   )
   metadata = {'kind': 'excitation', 'domain': 'dclaw'}
   env = recording.Recorder(env, directory, metadata=metadata)

@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from robel_dm import evaluate
+from robel_dm import evaluate, suite
 from robel_dm.hardware.tracking import natnet
 from robel_dm.hardware.tracking import spec as tracker_spec
 
@@ -61,10 +61,10 @@ def test_the_tracker_flag_reaches_a_natnet_stream_over_loopback():
   sender.start()
   try:
     results = evaluate.evaluate(
-      'dkitty', 'stand_fixed', 1, policy='zero', device_path='virtual',
-      tracker=(f'natnet:127.0.0.1:{command_port},rigid_body=1,'
-               f'multicast=unicast,data_port={data_port},local=127.0.0.1,'
-               'y_up=false'),
+      'dkitty', 'stand_fixed', 1, policy='zero',
+      robot=suite.RobotOptions('virtual', tracker=(
+        f'natnet:127.0.0.1:{command_port},rigid_body=1,multicast=unicast,'
+        f'data_port={data_port},local=127.0.0.1,y_up=false')),
     )  # fmt: skip
   finally:
     stop.set()

@@ -13,7 +13,6 @@ time (fast, deterministic, no hardware needed).
 
 from collections.abc import Callable
 import contextlib
-import dataclasses
 import logging
 import weakref
 
@@ -23,11 +22,14 @@ from robel_dm import constants
 from robel_dm import environment as environment_lib
 from robel_dm.hardware import clock as clock_lib
 from robel_dm.hardware import config as config_lib
+from robel_dm.hardware import connection as connection_lib
+from robel_dm.hardware import options as options_lib
 from robel_dm.hardware import physics as physics_lib
 from robel_dm.hardware import resets, shutdown
 from robel_dm.hardware import robot as robot_lib
 from robel_dm.hardware import robot_io as robot_io_lib
 from robel_dm.hardware.dynamixel import client as dynamixel
+from robel_dm.hardware.tracking import spec as tracker_spec
 
 VIRTUAL_DEVICE = constants.VIRTUAL_DEVICE
 
@@ -35,44 +37,16 @@ VIRTUAL_DEVICE = constants.VIRTUAL_DEVICE
 SceneFactory = Callable[[], composer.Environment]
 
 
-@dataclasses.dataclass
-class Connection:
-  """What a `HardwareEnvironment` runs on.
-
-  Attributes:
-    robot: the motors.
-    robot_config: their configuration.
-    clock: paces the control loop (wall or simulated time).
-    auxiliary_joints: auxiliary motor name -> the model joint it measures
-      (None for the guide, which measures none).
-    joint_limits: goal limits from the robot configuration.
-    reset: the reset procedure.
-    torso_source: a free-floating robot's torso pose, or None.
-    tracker: a `tracking.TorsoTracker`, or None.
-    guide: the guide motor's mode (`robot_io.GUIDE_MODES`), or None.
-    bus: the in-process virtual bus, or None.
-    simulation: the simulation behind the virtual bus, or None.
-    on_close: called when the environment closes.
-  """
-
-  robot: robot_lib.HardwareRobot
-  robot_config: config_lib.RobotConfig
-  clock: clock_lib.Clock
-  auxiliary_joints: dict
-  joint_limits: dict | None
-  reset: object
-  torso_source: Callable | None = None
-  tracker: object = None
-  guide: str | None = None
-  bus: object = None
-  simulation: object = None
-  on_close: list = dataclasses.field(default_factory=list)
-
-
 class HardwareEnvironment(environment_lib.Environment):
   """A robel_dm environment on motors; see `make_environment`."""
 
-  def __init__(self, task: composer.Task, *, connection: Connection, **kwargs):
+  def __init__(
+    self,
+    task: composer.Task,
+    *,
+    connection: connection_lib.Connection,
+    **kwargs,
+  ):
     self._connection = connection
     # Releases the robot once: on close, or when the environment is
     # garbage-collected without being closed (and at exit, at the latest).
@@ -104,17 +78,11 @@ class HardwareEnvironment(environment_lib.Environment):
     connection, task = self._connection, self.task
     physics = physics_lib.HardwarePhysics.from_mjcf_model(mjcf_model)
     physics.attach(
-      robot=connection.robot,
+      connection,
       joints=task.robot.joints,
       actuators=task.robot.actuators,
-      auxiliary_joints=connection.auxiliary_joints,
-      clock=connection.clock,
       control_timestep=task.control_timestep,
-      torso_source=connection.torso_source,
       root_joint=task.root_joint,
-      joint_limits=connection.joint_limits,
-      reset=connection.reset,
-      tracker=connection.tracker,
     )
     task.use_robot_io(
       robot_io_lib.HardwareRobotIO(
@@ -137,7 +105,7 @@ class HardwareEnvironment(environment_lib.Environment):
     self.close()
 
 
-def _disconnect(connection: Connection) -> None:
+def _disconnect(connection: connection_lib.Connection) -> None:
   """Releases the motors and closes the port, then whatever else the
   connection opened (the virtual bus, a tracker), each whatever the others
   raise."""
@@ -155,13 +123,9 @@ def make_environment(
   task: composer.Task,
   *,
   domain: str,
-  device_path: str,
-  robot_config: config_lib.RobotConfig | str | None = None,
+  robot: options_lib.RobotOptions,
   scene_factory: SceneFactory | None = None,
-  torso_source=None,
-  reset: str | None = None,
-  tracker=None,
-  guide: str | None = None,
+  torso_source: connection_lib.TorsoSource | None = None,
   **environment_kwargs,
 ) -> HardwareEnvironment:
   """Connects `task` to a robot.
@@ -169,26 +133,14 @@ def make_environment(
   Args:
     task: the task (built as for simulation).
     domain: 'dclaw' or 'dkitty'.
-    device_path: serial device of the Dynamixel bus, or 'virtual'.
-    robot_config: a `RobotConfig`, a path to a JSON configuration, or None
-      for ROBEL's configuration of the domain.
+    robot: the robot and how to run on it: device, configuration, reset,
+      guide motor, tracker (see `options.RobotOptions`).
     scene_factory: with device 'virtual': builds the simulated environment
       whose robot the virtual bus's motors follow (the simulation owns and
       closes it).
     torso_source: for a free-floating robot (D'Kitty) on a real bus: a
       callable returning the torso's (position, quaternion, linear
       velocity, angular velocity in the torso frame).
-    reset: 'scripted' (ROBEL's scripted resets; the default of the D'Claw's
-      valve tasks), 'move' (one blocking move; the default otherwise),
-      'manual' (a person places the robot), or a procedure (see `resets`).
-    tracker: a `tracking.TorsoTracker` for a free-floating robot: the torso
-      pose source (also on the virtual bus), recalibrated at every reset,
-      and the source of Orient/Walk targets if it tracks them. Closed with
-      the environment.
-    guide: ROBEL's guide motor (the configuration's 'guide' motor, ID 60 on
-      the D'Claw) for a task whose goal is an angle: 'show' points it at
-      the goal; 'interactive' releases it, and a person turning it sets the
-      goal. None (default): no guide.
     **environment_kwargs: forwarded to the environment.
 
   Returns:
@@ -200,6 +152,9 @@ def make_environment(
     ValueError: if the task needs a sensor this robot setup lacks, or for a
       guide the task cannot use.
   """
+  device_path, reset, guide = robot.device_path, robot.reset, robot.guide
+  tracker = robot.tracker  # A spec was checked when `robot` was built.
+  robot_config = robot.robot_config
   if isinstance(robot_config, str):
     robot_config = config_lib.load(robot_config)
   robot_config = robot_config or config_lib.default(domain)
@@ -212,10 +167,6 @@ def make_environment(
     )
   auxiliary_joints = dict(task.auxiliary_joints())
   if guide is not None:
-    if guide not in robot_io_lib.GUIDE_MODES:
-      raise ValueError(
-        f'guide must be one of {robot_io_lib.GUIDE_MODES}, got {guide!r}'
-      )
     if not task.goal_is_an_angle:
       raise ValueError(
         f'guide={guide!r}: the {task_label} has no goal angle to show or set'
@@ -232,15 +183,13 @@ def make_environment(
       )
     auxiliary.append(motor)
   free_floating = task.root_joint is not None
-  if tracker is not None:
-    torso_source = tracker.torso_state
   virtual = device_path == VIRTUAL_DEVICE
   if virtual and scene_factory is None:
     raise ValueError(
       "device_path='virtual' needs a scene_factory that builds the simulated "
       'robot (suite.load passes one)'
     )
-  if free_floating and not virtual and torso_source is None:
+  if free_floating and not virtual and torso_source is None and tracker is None:
     raise ValueError(
       f'the {task_label} needs the torso pose (upright, heading, '
       'position) from a motion tracker: pass tracker= (a robel_dm.'
@@ -257,6 +206,10 @@ def make_environment(
     reset = 'scripted' if scripted else 'move'
   if not free_floating:  # Checked before anything is opened.
     reset_procedure = resets.make(reset, robot_config, domain)
+  if isinstance(tracker, str):
+    tracker = tracker_spec.make_tracker(tracker)
+  if tracker is not None:
+    torso_source = tracker.torso_state
   on_close = [] if tracker is None else [tracker.close]
   bus = simulation = None
   if virtual:
@@ -295,7 +248,7 @@ def make_environment(
       clock = clock_lib.SimulatedClock(simulation, before_advance=sync_with_bus)
     else:
       clock = clock_lib.WallClock()
-    connection = Connection(
+    connection = connection_lib.Connection(
       robot=robot,
       robot_config=robot_config,
       clock=clock,

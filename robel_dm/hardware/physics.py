@@ -21,6 +21,7 @@ import mujoco
 import numpy as np
 
 from robel_dm.hardware import clock as clock_lib
+from robel_dm.hardware import connection as connection_lib
 from robel_dm.hardware import resets
 from robel_dm.hardware import robot as robot_lib
 from robel_dm.hardware import timing as timing_lib
@@ -36,41 +37,31 @@ class HardwarePhysics(mjcf.Physics):
 
   def attach(
     self,
-    robot: robot_lib.HardwareRobot,
+    connection: connection_lib.Connection,
     joints,
     actuators,
-    auxiliary_joints: dict,
-    clock: clock_lib.Clock,
     control_timestep: float,
-    torso_source=None,
     root_joint=None,
-    joint_limits=None,
-    reset=None,
-    tracker=None,
   ) -> None:
     """Connects the physics to the motors.
 
     Args:
-      robot: the motors, joints first in action order, then auxiliaries.
+      connection: the opened robot: its motors (joints first in action
+        order, then auxiliaries), clock, auxiliary motors, joint limits,
+        reset procedure, torso pose source and tracker.
       joints: the model's actuated joints, in action order.
       actuators: their actuators, in the same order.
-      auxiliary_joints: auxiliary motor name -> model joint it measures.
-      clock: paces the control loop.
       control_timestep: seconds per control step.
-      torso_source: callable returning (position, quaternion, linear
-        velocity, angular velocity in the body frame) of a free-floating
-        robot's root, or None.
-      root_joint: the model's free joint that `torso_source` drives.
-      joint_limits: joint name -> (low, high) goal limits from the robot
-        configuration, narrowing the action range.
-      reset: the reset procedure (see `resets`); a blocking move if None.
-      tracker: a `tracking.TorsoTracker`, or None. Its origin is
-        recalibrated after every reset (as ROBEL did).
+      root_joint: the model's free joint that the connection's torso source
+        drives (a free-floating robot's), or None.
     """
+    robot = connection.robot
+    auxiliary_joints = connection.auxiliary_joints
+    torso_source = connection.torso_source
     self._robot = robot
-    self._clock = clock
-    self._reset = reset or resets.MoveReset()
-    self._tracker = tracker
+    self._clock = connection.clock
+    self._reset = connection.reset or resets.MoveReset()
+    self._tracker = connection.tracker
     self._period = control_timestep
     # The achieved period and late steps of every control step.
     self.timing = timing_lib.ControlTiming(control_timestep)
@@ -92,7 +83,9 @@ class HardwarePhysics(mjcf.Physics):
     self._n_joints = len(joints)
     self._auxiliary_names = tuple(modelled)
     ctrl_range = self.bind(list(actuators)).ctrlrange
-    robot.set_joint_limits(ctrl_range[:, 0], ctrl_range[:, 1], joint_limits)
+    robot.set_joint_limits(
+      ctrl_range[:, 0], ctrl_range[:, 1], connection.joint_limits
+    )
     self.motor_currents = np.zeros(len(joints))  # mA, updated every step.
     self._torso_source = torso_source
     if torso_source is not None:

@@ -9,12 +9,12 @@ and a motion tracker's target and heading markers.
 import numpy as np
 
 from robel_dm.hardware import physics as physics_lib
+from robel_dm.hardware.options import (  # noqa: F401 (the modes' home)
+  GUIDE_MODES,
+  GUIDE_SETS_GOAL,
+  GUIDE_SHOWS_GOAL,
+)
 
-# Guide motor modes: it shows the task's goal, or a person turns it to set
-# the goal.
-GUIDE_SHOWS_GOAL = 'show'
-GUIDE_SETS_GOAL = 'interactive'
-GUIDE_MODES = (GUIDE_SHOWS_GOAL, GUIDE_SETS_GOAL)
 # The guide's name among a robot configuration's auxiliary motors.
 GUIDE_MOTOR = 'guide'
 

@@ -66,18 +66,13 @@ RESUMABLE_OPTIONS = ('device_path', 'hours')
 
 
 @dataclasses.dataclass(frozen=True)
-class RobotOptions:
+class RobotRunOptions:
   """How a run uses its robot.
 
   Attributes:
-    device_path: the Dynamixel bus ('/dev/ttyUSB0', a virtual bus's pty),
-      or 'virtual' for an in-process virtual bus in simulated time.
-    robot_config: a robot configuration file; ROBEL's robot if None.
-    reset: the reset procedure ('scripted', 'move', 'manual'); the
-      robot's default if None.
-    guide: D'Claw Turn/Screw guide motor mode, or None.
-    tracker: a D'Kitty's motion tracker spec (`hardware.tracking.spec`).
-    dynamics: with 'virtual', a calibration of the simulated robot.
+    robot: the robot (`suite.RobotOptions`: its bus, configuration, reset,
+      guide motor, tracker spec).
+    dynamics: with device 'virtual', a calibration of the simulated robot.
     hours: wall-clock budget of this session, h (None: `steps` only).
     max_violations: an episode ends early once its safety violations
       (position + velocity + current) reach this; None: never.
@@ -85,11 +80,7 @@ class RobotOptions:
     updates_per_step: gradient updates per recorded transition, at most.
   """
 
-  device_path: str
-  robot_config: str | None = None
-  reset: str | None = None
-  guide: str | None = None
-  tracker: str | None = None
+  robot: suite.RobotOptions
   dynamics: str | None = None
   hours: float | None = None
   max_violations: int | None = None
@@ -98,8 +89,6 @@ class RobotOptions:
 
   def check(self) -> None:
     """Raises ValueError naming the first bad option."""
-    if not self.device_path:
-      raise ValueError('device_path must name a bus (or be "virtual")')
     if self.hours is not None and not self.hours > 0:
       raise ValueError(f'hours must be > 0, got {self.hours}')
     if self.max_violations is not None and self.max_violations < 1:
@@ -115,23 +104,20 @@ class RobotOptions:
         f'updates_per_step must be in (0, 64], got {self.updates_per_step}'
       )
 
+  def to_json(self) -> dict[str, Any]:
+    """The options as one flat JSON object (saved beside the run)."""
+    fields = dataclasses.asdict(self)
+    del fields['robot']
+    return {**self.robot.to_json(), **fields}
+
   def load(self, config: train_lib.RunConfig, seed: int):
     """The task's environment on the robot."""
-    tracker = None
-    if self.tracker is not None:
-      from robel_dm.hardware.tracking import spec as tracker_spec  # noqa: PLC0415
-
-      tracker = tracker_spec.make_tracker(self.tracker)
     return suite.load(
       config.domain,
       config.task,
       task_kwargs=config.task_kwargs,
       seed=seed,
-      device_path=self.device_path,
-      robot_config=self.robot_config,
-      reset=self.reset,
-      guide=self.guide,
-      tracker=tracker,
+      robot=self.robot,
       dynamics=self.dynamics,
     )
 
@@ -181,7 +167,7 @@ class _RobotRun:
           'task': self.config.task,
           'task_kwargs': dict(self.config.task_kwargs),
           'seed': seed,
-          'device_path': self.options.device_path,
+          'device_path': self.options.robot.device_path,
           'policy': f'train --algo={self.config.algo}',
         },
       )
@@ -320,16 +306,16 @@ class _RobotRun:
     }
 
 
-def _check_robot_resume(output: pathlib.Path, options: RobotOptions) -> None:
+def _check_robot_resume(output: pathlib.Path, options: RobotRunOptions) -> None:
   path = output / ROBOT
   if not path.is_file():
     raise ValueError(f'--resume: {path} is missing (not a run on a robot)')
   saved = json.loads(path.read_text())
+  now = options.to_json()
   differences = [
-    f'{name}: {saved.get(name)!r} (now {getattr(options, name)!r})'
-    for name in (f.name for f in dataclasses.fields(RobotOptions))
-    if name not in RESUMABLE_OPTIONS
-    and saved.get(name) != getattr(options, name)
+    f'{name}: {saved.get(name)!r} (now {value!r})'
+    for name, value in now.items()
+    if name not in RESUMABLE_OPTIONS and saved.get(name) != value
   ]
   if differences:
     raise ValueError(
@@ -357,7 +343,7 @@ def _recorded(output: pathlib.Path, config, keys) -> demos.Transitions | None:
 
 def train_on_robot(
   config: train_lib.RunConfig,
-  options: RobotOptions,
+  options: RobotRunOptions,
   output_dir: str | pathlib.Path,
   *,
   resume: bool = False,
@@ -397,7 +383,7 @@ def train_on_robot(
   recorded = _recorded(output, config, keys) if resume else None
   output.mkdir(parents=True, exist_ok=True)
   (output / train_lib.CONFIG).write_text(json.dumps(config.to_json(), indent=1))
-  (output / ROBOT).write_text(json.dumps(dataclasses.asdict(options), indent=1))
+  (output / ROBOT).write_text(json.dumps(options.to_json(), indent=1))
   run = train_lib.Run(output, config, log)
   if resume:
     run.load_history()

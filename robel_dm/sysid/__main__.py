@@ -59,6 +59,14 @@ def _define_flags() -> None:
   )
 
 
+def _robot() -> suite.RobotOptions | None:
+  if not FLAGS.device_path:
+    if FLAGS.robot_config:
+      raise ValueError('--robot_config needs --device_path (a robot)')
+    return None
+  return suite.RobotOptions(FLAGS.device_path, robot_config=FLAGS.robot_config)
+
+
 def excite() -> int:
   if not FLAGS.record:
     raise ValueError('excite needs --record=DIR (where the episodes go)')
@@ -73,8 +81,7 @@ def excite() -> int:
     FLAGS.domain,
     FLAGS.duration,
     seed=FLAGS.seed,
-    device_path=FLAGS.device_path,
-    robot_config=FLAGS.robot_config,
+    robot=_robot(),
     dynamics=FLAGS.dynamics,
   )
   metadata = {
