@@ -26,6 +26,7 @@ from robel_dm import (
   provenance,
   recording,
   result_table,
+  robots,
   rollout,
   suite,
   video,
@@ -255,7 +256,7 @@ def evaluate(
           on_episode(results())
       return results()
     if video_dir is not None:
-      camera = camera or video.DEFAULT_CAMERAS[domain]
+      camera = camera or robots.ROBOTS[domain].default_camera
       video.check_camera(env, camera)
       os.makedirs(video_dir, exist_ok=True)
     for episode in range(episodes):

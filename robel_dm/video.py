@@ -16,8 +16,6 @@ import numpy as np
 # Frame size, pixels (H.264 wants even sizes).
 DEFAULT_HEIGHT = 480
 DEFAULT_WIDTH = 640
-# Default cameras, per domain: they frame the robot and its goal.
-DEFAULT_CAMERAS = {'dclaw': 'front', 'dkitty': 'overview'}
 
 
 class VideoError(RuntimeError):

@@ -30,6 +30,7 @@ import os
 import pathlib
 from typing import Any
 
+from robel_dm import robots
 from robel_dm.hardware.dynamixel import control_table
 
 _MAX_ID = 252
@@ -215,8 +216,12 @@ def load(path: str | os.PathLike) -> RobotConfig:
 
 def default(robot: str) -> RobotConfig:
   """ROBEL's configuration of `robot` ('dclaw' or 'dkitty')."""
+  if robot not in robots.ROBOTS:
+    raise ConfigError(f'no shipped configuration for robot {robot!r}')
   resource = (
-    importlib.resources.files(__package__) / 'configs' / f'{robot}.json'
+    importlib.resources.files(__package__)
+    / 'configs'
+    / robots.ROBOTS[robot].config_file
   )
   if not resource.is_file():
     raise ConfigError(f'no shipped configuration for robot {robot!r}')

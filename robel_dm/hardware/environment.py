@@ -18,7 +18,7 @@ import weakref
 
 from dm_control import composer, mjcf
 
-from robel_dm import constants
+from robel_dm import constants, robots
 from robel_dm import environment as environment_lib
 from robel_dm.hardware import clock as clock_lib
 from robel_dm.hardware import config as config_lib
@@ -202,7 +202,10 @@ def make_environment(
     # ROBEL scripts the D'Claw's object tasks' reset. The D'Kitty's scripted
     # stand-up is opt-in: in simulation it gets up from a crouch but not
     # from lying on its back (see `resets.DKittyScriptedReset`).
-    scripted = domain == 'dclaw' and task.auxiliary_joints()
+    scripted = (
+      robots.ROBOTS[domain].scripted_reset_with_object
+      and task.auxiliary_joints()
+    )
     reset = 'scripted' if scripted else 'move'
   if not free_floating:  # Checked before anything is opened.
     reset_procedure = resets.make(reset, robot_config, domain)

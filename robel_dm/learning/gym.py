@@ -33,7 +33,7 @@ import gymnasium
 from gymnasium import spaces
 import numpy as np
 
-from robel_dm import suite
+from robel_dm import robots, suite
 from robel_dm.tasks import base
 
 NAMESPACE = 'robel_dm'
@@ -42,14 +42,17 @@ _VARIANT_NAMES = {
   'random': 'Random',
   'random_dynamics': 'RandomDynamics',
 }
-_DOMAIN_NAMES = {'dclaw': 'DClaw', 'dkitty': 'DKitty'}
 _VALVE4 = {'valve': 'valve4'}
 
 
 def env_name(domain: str, task: str, valve4: bool = False) -> str:
   """ROBEL's name of a task: ('dclaw', 'turn_fixed') -> 'DClawTurnFixed'."""
   family, variant = task.split('_', 1)
-  name = _DOMAIN_NAMES[domain] + family.capitalize() + _VARIANT_NAMES[variant]
+  name = (
+    robots.ROBOTS[domain].gym_prefix
+    + family.capitalize()
+    + _VARIANT_NAMES[variant]
+  )
   return name + ('Valve4' if valve4 else '')
 
 

@@ -19,13 +19,14 @@ import numpy as np
 from robel_dm import calibration, provenance, recording, suite
 from robel_dm.sysid import excite as excite_lib
 from robel_dm.sysid import fit as fit_lib
+from robel_dm.tasks import excitation
 
 FLAGS = flags.FLAGS
 COMMANDS = ('excite', 'fit')
 
 
 def _define_flags() -> None:
-  flags.DEFINE_enum('domain', 'dclaw', ['dclaw', 'dkitty'], 'The robot.')
+  flags.DEFINE_enum('domain', 'dclaw', list(excitation.DOMAINS), 'The robot.')
   flags.DEFINE_string(
     'device_path', None,
     "excite: the robot's Dynamixel bus, or 'virtual' for the simulated bus; "

@@ -19,6 +19,7 @@ import signal
 import sys
 import threading
 
+from robel_dm import robots
 from robel_dm.hardware import config
 from robel_dm.hardware.virtual.bus import (
   Bus,
@@ -32,9 +33,6 @@ from robel_dm.hardware.virtual.transport import PtyBusServer
 # --driver values: factories of a driver for a robot configuration and a
 # calibration file of the simulated robot (or None).
 DriverFactory = Callable[[config.RobotConfig, str | None], Driver]
-# The scene a standalone simulated robot runs: one with every motor's joint
-# (the D'Claw's includes the valve that motor 50 reads).
-_SIMULATED_SCENES = {'dclaw': 'turn_fixed', 'dkitty': 'stand_fixed'}
 
 
 def _simulated_robot(
@@ -46,7 +44,7 @@ def _simulated_robot(
 
   scene = suite.load(
     robot_config.robot,
-    _SIMULATED_SCENES[robot_config.robot],
+    robots.ROBOTS[robot_config.robot].standalone_scene,
     seed=0,
     time_limit=math.inf,
     dynamics=dynamics,

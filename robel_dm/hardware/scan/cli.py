@@ -23,6 +23,7 @@ from collections.abc import Callable, Iterable, Sequence
 import sys
 from typing import TextIO
 
+from robel_dm import robots
 from robel_dm.hardware import config as config_lib
 from robel_dm.hardware.dynamixel import client as dynamixel
 from robel_dm.hardware.dynamixel import control_table as table
@@ -228,7 +229,7 @@ def _define_flags():
     'robot': flags.DEFINE_enum(
       'robot',
       None,
-      ['dclaw', 'dkitty'],
+      sorted(robots.ROBOTS),
       "Expect this robot's shipped configuration.",
     ),
     'robot_config': flags.DEFINE_string(
