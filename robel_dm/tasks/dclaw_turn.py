@@ -173,6 +173,11 @@ class TurnTask(base.RobelTask):
     return self._episode_initial_angle
 
   @property
+  def goal_velocity(self) -> float:
+    """The rate this episode's goal moves at, rad/s (as drawn)."""
+    return self._velocity
+
+  @property
   def goal(self) -> float:
     """The current goal angle, rad (unwrapped when the goal moves)."""
     return self._goal
