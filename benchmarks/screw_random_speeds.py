@@ -4,13 +4,13 @@ r"""Screw Random's success by goal speed: how fast can a policy turn the valve?
         [--episodes=100]
 
 Runs a trained Screw policy (its task arguments, e.g. extra observation
-keys, come from its metadata) on `--episodes` episodes of
-dclaw/screw_random from seeds 1,000,000 on (the evaluation seeds of
-`train`), and prints, per band of the episode's goal speed |v| (ROBEL draws
-v uniformly in [-0.75, 0.75] rad/s), the share of episodes in the band,
-the success rate (mean |angle error| below 0.2 rad), the mean |angle
-error|, and the valve's mean speed over the episode (net turn over 8 s, in
-the goal's direction).
+keys, come from its metadata) on `--episodes` episodes of dclaw/screw_random
+from seeds 1,000,000 on (the evaluation seeds of `train`), and prints, per
+band and direction of the episode's goal velocity v (ROBEL draws v uniformly
+in [-0.75, 0.75] rad/s), the share of episodes in the band, the success rate
+(mean |angle error| below 0.2 rad), the mean |angle error|, and the valve's
+mean speed over the episode (net turn over 8 s, in the goal's direction),
+for goals turning each way.
 """
 
 import argparse
@@ -30,7 +30,7 @@ def main() -> None:
   args = parser.parse_args()
   policy = policies.load(args.policy, any_variant=True)
   task_kwargs = policy.metadata.get('task_kwargs', {})
-  speeds, success, errors, valve_speeds = [], [], [], []
+  velocities, success, errors, valve_speeds = [], [], [], []
   for episode in range(args.episodes):
     env = suite.load(
       'dclaw', 'screw_random', task_kwargs=task_kwargs, seed=_SEED + episode
@@ -46,25 +46,27 @@ def main() -> None:
       distances.append(abs(float(timestep.observation['target_error'][0])))
     duration = env.physics.data.time
     turned = float(hinge.qpos[0]) - start_angle
-    speeds.append(abs(velocity))
+    velocities.append(velocity)
     valve_speeds.append(turned / duration * np.sign(velocity or 1.0))
     errors.append(np.mean(distances))
     success.append(bool(timestep.observation['success']))
     env.close()
-  speeds, success = np.array(speeds), np.array(success)
+  velocities, success = np.array(velocities), np.array(success)
+  speeds = np.abs(velocities)
   errors, valve_speeds = np.array(errors), np.array(valve_speeds)
   print(f'{args.episodes} episodes of dclaw/screw_random, {args.policy}')
-  print('goal |v| rad/s  share  success  mean |error| rad  valve speed rad/s')
-  for low, high in _BANDS:
-    band = (speeds >= low) & (speeds < high)
-    if not band.any():
-      continue
-    print(
-      f'{low:4.2f} .. {high:4.2f}    {band.mean():5.2f}  '
-      f'{success[band].mean():7.2f}  {errors[band].mean():16.3f}  '
-      f'{valve_speeds[band].mean():17.3f}'
-    )
-  print(f'all             1.00  {success.mean():7.2f}  {errors.mean():16.3f}')
+  print('goal v rad/s      share  success  mean |error| rad  valve speed rad/s')
+  for sign in (1, -1):
+    for low, high in _BANDS:
+      band = (speeds >= low) & (speeds < high) & (np.sign(velocities) == sign)
+      if not band.any():
+        continue
+      label = f'{sign * low:+5.2f} .. {sign * high:+5.2f}'
+      print(
+        f'{label}    {band.mean():5.2f}  {success[band].mean():7.2f}  '
+        f'{errors[band].mean():16.3f}  {valve_speeds[band].mean():17.3f}'
+      )
+  print(f'all               1.00  {success.mean():7.2f}  {errors.mean():16.3f}')
 
 
 if __name__ == '__main__':
