@@ -15,7 +15,8 @@ A recording directory (the paths of LeRobotDataset v2.1):
                         policy, device path ...)
   data/chunk-000/episode_<index>.parquet   a finished episode's steps
   data/chunk-000/episode_<index>.arrows    an episode being recorded (an
-                        Arrow IPC stream; partial if the process died)
+                        Arrow IPC stream, its metadata in the schema; partial
+                        if the process died)
 
 One row per dm_env timestep, the reset's first: `episode_index`,
 `frame_index`, `timestamp` (physics time, s), `wall_time` (time.time()),
@@ -31,9 +32,13 @@ action taken from a frame's observation): `lerobot.export` writes a
 LeRobotDataset v2.1. docs/recording.md has the details.
 
 Crash safety: steps are written to the episode's Arrow stream and flushed
-at least once a second, so after `kill -9` every step completed more than a
-second before is readable, and the reader reports that episode with
-`complete: False`.
+(and fsynced) at least every 0.5 s, by a background thread when no step
+comes, so after `kill -9` every step completed more than a second before is
+readable, and the reader reports that episode with `complete: False` and the
+metadata it started with. A kill while an episode is being finished, a
+damaged Parquet file or episodes.jsonl line cost at most that episode (with
+a warning naming the file); no episode is read twice. A directory holds one
+task: recording another into it raises RecordingError.
 """
 
 from robel_dm.recording.format import (  # noqa: F401

@@ -6,13 +6,19 @@ python -m robel_dm.recording DIR --lerobot=OUT
 
 import argparse
 import sys
+import warnings
 
 from robel_dm.recording import format as format_lib
 from robel_dm.recording import lerobot
 
 
 def _summary(directory: str) -> None:
-  rows = format_lib.summarize(directory)
+  with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter('always')
+    rows = format_lib.summarize(directory)
+  for warning in caught:  # A damaged file, named (see format.read).
+    print(f'warning: {warning.message}', file=sys.stderr)
+  # Violations after the reset, as python -m robel_dm.evaluate counts them.
   print(f'{"episode":>7} {"steps":>6} {"complete":>8} {"success":>7} '
         f'{"return":>10}  pos/vel/cur violations')  # fmt: skip
   for row in rows:

@@ -20,6 +20,53 @@ def _value(value):
   return array.astype(np.float64).ravel().tolist()
 
 
+# What binds a recording directory to one task: the session metadata keys
+# compared when both the recorded and the new session name them.
+_TASK_KEYS = ('domain', 'task', 'task_kwargs')
+
+
+def _describe(info: dict[str, Any], keys: bool) -> str:
+  session = info.get('session') or {}
+  name = '/'.join(str(session[k]) for k in ('domain', 'task') if k in session)
+  if session.get('task_kwargs'):
+    name += f' {json.dumps(session["task_kwargs"], sort_keys=True)}'
+  name = name or 'an unnamed task'
+  if keys:
+    name += f' (observations {",".join(info.get("observation_keys") or [])})'
+  return name
+
+
+def _check_same_task(directory: pathlib.Path, info: dict[str, Any]) -> None:
+  """Raises RecordingError if `directory` holds a recording whose task or
+  observation keys differ from `info`'s."""
+  path = directory / format_lib.INFO
+  if not path.is_file():
+    return
+  try:
+    old = json.loads(path.read_text())
+    new = json.loads(json.dumps(info))  # Tuples as lists, as recorded.
+  except (OSError, TypeError, ValueError) as error:
+    raise format_lib.RecordingError(
+      f'cannot check {path} before recording into {directory}: {error}'
+    ) from error
+  if not isinstance(old, dict) or old.get('format') != format_lib.FORMAT:
+    raise format_lib.RecordingError(f'{path} is not a robel_dm recording')
+  old_session, new_session = old.get('session') or {}, new['session']
+  other_task = any(
+    key in old_session
+    and key in new_session
+    and old_session[key] != new_session[key]
+    for key in _TASK_KEYS
+  )
+  keys = new['observation_keys']
+  other_keys = old.get('observation_keys', keys) != keys
+  if other_task or other_keys:
+    raise format_lib.RecordingError(
+      f'{directory} holds a recording of {_describe(old, other_keys)}, not '
+      f'{_describe(new, other_keys)}: record into another directory'
+    )
+
+
 class Recorder(dm_env.Environment):
   """Records `env`'s timesteps into a recording directory as they happen.
 
@@ -45,12 +92,13 @@ class Recorder(dm_env.Environment):
         domain, task, task_kwargs, seed, policy, device_path).
 
     Raises:
-      RecordingError: if the directory is not writable or the disk is full;
-        raised before the robot moves.
+      RecordingError: if the directory is not writable, the disk is full,
+        or it holds a recording of another task or observation keys (the
+        session's domain, task or task_kwargs, where both name them);
+        raised before the robot moves and before anything is written.
     """
     self._env = env
     self._directory = pathlib.Path(directory)
-    format_lib.prepare(self._directory)
     self._metadata = dict(metadata or {})
     config = getattr(env, 'robot_config', None)  # A robot's motors.
     self._robot_config = {} if config is None else config.describe()
@@ -63,9 +111,13 @@ class Recorder(dm_env.Environment):
       'robot': self._robot_config,
       'observation_keys': list(env.task.agent_observation_keys),
     }
+    _check_same_task(self._directory, info)  # Before anything is written.
+    format_lib.prepare(self._directory)
     try:
-      (self._directory / format_lib.INFO).write_text(json.dumps(info, indent=1))
-    except OSError as error:
+      format_lib.write_atomically(
+        self._directory / format_lib.INFO, json.dumps(info, indent=1)
+      )
+    except (OSError, TypeError, ValueError) as error:
       raise format_lib.RecordingError(
         f'cannot write {self._directory}: {error}'
       ) from error
@@ -108,9 +160,11 @@ class Recorder(dm_env.Environment):
 
   def _start_episode(self, timestep: dm_env.TimeStep) -> None:
     index = format_lib.next_index(self._directory)
-    self._writer = format_lib.EpisodeWriter(self._directory, index)
     self._frame = 0
     self._start_wall = time.time()
+    self._writer = format_lib.EpisodeWriter(
+      self._directory, index, self._episode_metadata(index)
+    )
     self._record(timestep, action=None)
 
   def observation_spec(self):
@@ -169,18 +223,26 @@ class Recorder(dm_env.Environment):
     self._writer.add(row)
     self._frame += 1
 
+  def _episode_metadata(self, index: int) -> dict[str, Any]:
+    """What the episode's line says besides its ending (also stored in its
+    stream at the start, for a partial episode)."""
+    metadata = {
+      **self._metadata,
+      'episode_index': index,
+      'start_time': self._start_wall,
+    }
+    if self._robot_config:
+      metadata['robot'] = self._robot_config
+    return metadata
+
   def _finish(self, complete: bool, error: str | None = None) -> None:
     writer, self._writer = self._writer, None
     if writer is None:
       return
     metadata = {
-      **self._metadata,
-      'episode_index': writer.index,
+      **self._episode_metadata(writer.index),
       'complete': complete,
-      'start_time': self._start_wall,
     }
-    if self._robot_config:
-      metadata['robot'] = self._robot_config
     if error is not None:
       metadata['error'] = error
     writer.finish(metadata)
