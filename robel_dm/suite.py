@@ -59,6 +59,9 @@ TASKS_BY_DOMAIN = {
 FIXED = _tagged(registry.FIXED)
 RANDOM = _tagged(registry.RANDOM)
 RANDOM_DYNAMICS = _tagged(registry.RANDOM_DYNAMICS)
+# dm_control.suite's name for the tasks a benchmark reports: here every
+# task is one (ROBEL's 18, each in the baseline table).
+BENCHMARKING = ALL_TASKS
 
 
 def _unknown(kind: str, name: str, known) -> ValueError:
@@ -144,6 +147,13 @@ def load(
         f'(suite.load({owners[0]!r}, {task!r}))'
       )
     raise _unknown(f'{domain} task', task, tasks)
+
+  if 'random' in (task_kwargs or {}):
+    raise ValueError(
+      "task_kwargs={'random': ...}: robel_dm tasks take no random state; "
+      'pass seed= to suite.load (dm_control.suite passes it as '
+      "task_kwargs['random'])"
+    )
 
   def make_task() -> base.RobelTask:
     try:

@@ -291,3 +291,9 @@ def test_dm_control_suite_keywords_work():
     suite.load('dclaw', 'pose_fixed', domain_name='dkitty')
   with pytest.raises(ValueError, match='task is required'):
     suite.load('dclaw')
+
+
+def test_dm_control_habits_are_met():
+  assert suite.BENCHMARKING == suite.ALL_TASKS and len(suite.BENCHMARKING) == 18
+  with pytest.raises(ValueError, match='pass seed= to suite.load'):
+    suite.load('dclaw', 'pose_fixed', task_kwargs={'random': 0})
