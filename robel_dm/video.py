@@ -27,11 +27,27 @@ def camera_names(env: dm_env.Environment) -> list[str]:
   return [model.id2name(i, 'camera') for i in range(model.ncam)]
 
 
+def resolve_camera(env: dm_env.Environment, camera: str) -> str:
+  """The model's name of `camera`: as given, or the one camera whose name
+  ends in it (`tracking_top` for `dkitty/tracking_top`, as xml/README.md
+  names them).
+
+  Raises:
+    VideoError: naming the cameras if `camera` is none of them (or ends
+      more than one).
+  """
+  names = camera_names(env)
+  if camera in names:
+    return camera
+  matches = [name for name in names if name.split('/')[-1] == camera]
+  if len(matches) != 1:
+    raise VideoError(f'no camera {camera!r}; this task has {names}')
+  return matches[0]
+
+
 def check_camera(env: dm_env.Environment, camera: str) -> None:
   """Raises `VideoError` naming the cameras if `camera` is not one."""
-  names = camera_names(env)
-  if camera not in names:
-    raise VideoError(f'no camera {camera!r}; this task has {names}')
+  resolve_camera(env, camera)
 
 
 class VideoWriter:
@@ -49,26 +65,31 @@ class VideoWriter:
       raise VideoError(
         'videos need imageio-ffmpeg: pip install "robel_dm[video]"'
       ) from error
-    height, width = size
     self.path = pathlib.Path(path)
     self.frames = 0
-    self._writer = imageio_ffmpeg.write_frames(
+    self._open = lambda: imageio_ffmpeg.write_frames(
       str(self.path),
-      (width, height),
+      (size[1], size[0]),
       fps=fps,
       codec='libx264',
       pix_fmt_out='yuv420p',
       macro_block_size=2,
       ffmpeg_log_level='error',
     )
-    self._writer.send(None)  # Starts ffmpeg.
+    # ffmpeg starts with the first frame: a render that fails before it
+    # leaves no file behind.
+    self._writer = None
 
   def add(self, frame: np.ndarray) -> None:
+    if self._writer is None:
+      self._writer = self._open()
+      self._writer.send(None)  # Starts ffmpeg.
     self._writer.send(np.ascontiguousarray(frame, dtype=np.uint8))
     self.frames += 1
 
   def close(self) -> None:
-    self._writer.close()
+    if self._writer is not None:
+      self._writer.close()
 
 
 def render(
@@ -82,8 +103,9 @@ def render(
     VideoError: if offscreen rendering is unavailable.
   """
   height, width = size
+  camera_id = resolve_camera(env, camera)
   try:
-    return env.physics.render(height=height, width=width, camera_id=camera)
+    return env.physics.render(height=height, width=width, camera_id=camera_id)
   except Exception as error:  # dm_control raises several kinds here.
     raise VideoError(
       f'offscreen rendering failed ({error}); set MUJOCO_GL=egl (or osmesa '
@@ -103,7 +125,7 @@ def record_episode(
   Returns:
     The last timestep and the number of frames written (steps + 1).
   """
-  check_camera(env, camera)
+  camera = resolve_camera(env, camera)
   writer = VideoWriter(path, fps=1 / env.control_timestep(), size=size)
   try:
     timestep = env.reset()

@@ -72,3 +72,28 @@ def test_evaluate_writes_a_video_per_episode(tmp_path):
     reader = imageio_ffmpeg.read_frames(path)
     next(reader)
     assert sum(1 for _ in reader) == record['steps'] + 1
+
+
+def test_cameras_answer_to_their_documented_names():
+  # xml/README.md names the kitty's top camera `tracking_top`; the model
+  # calls it `dkitty/tracking_top`.
+  env = suite.load('dkitty', 'walk_fixed', seed=0)
+  env.reset()
+  assert 'tracking_top' not in video.camera_names(env)
+  assert video.resolve_camera(env, 'tracking_top') == 'dkitty/tracking_top'
+  assert video.render(env, 'tracking_top', (32, 32)).shape == (32, 32, 3)
+  env.close()
+
+
+def test_a_render_that_fails_leaves_no_file(tmp_path):
+  # evaluate --video opens the writer, then renders the first frame; without
+  # a GL backend that render fails, and no (invalid) MP4 may stay behind.
+  def failing_render():
+    raise video.VideoError('offscreen rendering failed')
+
+  path = tmp_path / 'never.mp4'
+  writer = video.VideoWriter(path, fps=10)
+  with pytest.raises(video.VideoError):
+    writer.add(failing_render())
+  writer.close()
+  assert not path.exists() and writer.frames == 0
