@@ -137,6 +137,7 @@ def evaluate(
   ray_address: str | None = None,
   record: str | None = None,
   dynamics: str | None = None,
+  allow_other_seed: bool = False,
 ) -> dict[str, Any]:
   """Runs `episodes` episodes and returns the metrics.
 
@@ -168,6 +169,8 @@ def evaluate(
       (`robel_dm.recording`; checked before anything moves).
     dynamics: a calibration file of the simulated robot (see
       `suite.load` and docs/sysid.md).
+    allow_other_seed: replay a recording ('replay:DIR') from another seed
+      than its own (refused otherwise, before anything is built).
 
   Returns:
     A JSON-serializable dict of per-episode records, summary metrics,
@@ -181,16 +184,28 @@ def evaluate(
     raise ValueError(f'episodes must be >= 1, got {episodes}')
   if workers < 1:
     raise ValueError(f'workers must be >= 1, got {workers}')
+  replay = isinstance(policy, str) and policy.startswith(policies.REPLAY)
   if (workers > 1 or ray_address) and (
-    callable(policy) or robot or video_dir or record or dynamics or seed is None
+    callable(policy)
+    or replay  # Each worker would replay from the recording's start.
+    or robot
+    or video_dir
+    or record
+    or dynamics
+    or seed is None
   ):
     raise ValueError(
       'workers > 1 and ray_address need a simulated task, a seed, no video, '
-      'no dynamics, and a policy given by name or path'
+      'no dynamics, and a policy given by name or path (not a replay)'
     )
   # A policy file is read and checked against the task before anything is
   # built (and a robot moves); None for policies that are not files.
   checked = policies.check_file(policy, domain, task, task_kwargs)
+  if replay:
+    checked = policies.ReplayPolicy(
+      policy[len(policies.REPLAY) :], domain, task, task_kwargs, seed,
+      episodes=episodes, check_seed=not allow_other_seed,
+    )  # fmt: skip
   env = suite.load(
     domain,
     task,
@@ -245,11 +260,11 @@ def evaluate(
     if workers > 1 or ray_address:
       env.close()
       run = parallel.ray_episodes if ray_address else parallel.local_episodes
-      for record, steps, seconds in run(
+      for episode_record, steps, seconds in run(
         domain, task, task_kwargs, policy, seed, episodes,
         ray_address or workers,
       ):  # fmt: skip
-        records.append(record)
+        records.append(episode_record)
         total_steps += steps
         step_seconds += seconds
         if on_episode is not None:
@@ -271,16 +286,18 @@ def evaluate(
 
       if policy == 'random':  # Each episode's actions from its own seed.
         act = policies.make_policy(policy, env, episode_seed)
+      if isinstance(env, recording.Recorder):  # What a replay checks.
+        env.annotate(episode_seed=episode_seed)
       try:
-        record, steps, seconds = rollout.run_episode(
+        episode_record, steps, seconds = rollout.run_episode(
           env, act, episode_seed, on_step
         )
       finally:
         if writer is not None:
           writer.close()
       if writer is not None:
-        record['video'] = path
-      records.append(record)
+        episode_record['video'] = path
+      records.append(episode_record)
       total_steps += steps
       step_seconds += seconds
       if on_episode is not None:
@@ -376,6 +393,11 @@ def _define_flags() -> None:
     False,
     'Run a policy file on another variant of the task it was trained on '
     "(e.g. a Fixed task's policy on the Random one).",
+  )
+  flags.DEFINE_bool(
+    'allow_other_seed',
+    False,
+    'Replay a recording (--policy=replay:DIR) from another seed than its own.',
   )
   flags.DEFINE_string(
     'task_kwargs',
@@ -485,6 +507,7 @@ def main(argv):
         ray_address=FLAGS.ray_address,
         record=FLAGS.record,
         dynamics=FLAGS.dynamics,
+        allow_other_seed=FLAGS.allow_other_seed,
       )
       finished.append(results)
       print(result_table.format_summary(results), flush=True)

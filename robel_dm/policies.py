@@ -57,22 +57,50 @@ class ReplayPolicy:
   exactly.
   """
 
-  def __init__(self, directory: str, domain: str | None, task: str | None):
+  def __init__(
+    self,
+    directory: str,
+    domain: str | None,
+    task: str | None,
+    task_kwargs: dict | None = None,
+    seed: int | None = None,
+    *,
+    episodes: int | None = None,
+    check_seed: bool = False,
+  ):
+    """Reads the recording and checks it against the replay.
+
+    Args:
+      directory: the recording directory.
+      domain: the replay's domain (None: no check of the task).
+      task: the replay's task.
+      task_kwargs: the replay's task arguments.
+      seed: the replay's seed: its episode i is reset with `seed + i`, as
+        `evaluate` resets them (None: fresh seeds).
+      episodes: how many episodes will be replayed (None: any number).
+      check_seed: refuse a seed other than the recorded one.
+
+    Raises:
+      PolicyError: naming what differs (recorded and requested value)
+        where the recording says: the task (domain, task, task_kwargs),
+        the seed (if `check_seed`), or too few episodes.
+    """
     from robel_dm import recording  # noqa: PLC0415 (pyarrow)
 
-    episodes = recording.read(directory)
-    if not episodes:
+    recorded = recording.read(directory)
+    if not recorded:
       raise PolicyError(f'the recording {directory} has no episodes')
-    recorded = (
-      episodes[0].metadata.get('domain'),
-      episodes[0].metadata.get('task'),
-    )
-    if domain is not None and recorded != (domain, task):
+    if episodes is not None and episodes > len(recorded):
       raise PolicyError(
-        f'the recording {directory} is of {recorded[0]}/{recorded[1]}, not '
-        f'{domain}/{task}'
+        f'the recording {directory} has {len(recorded)} episodes, not '
+        f'{episodes}'
       )
-    self._actions = [episode.steps['action'] for episode in episodes]
+    for i, episode in enumerate(recorded[:episodes]):
+      if domain is not None:
+        _check_task(directory, episode.metadata, domain, task, task_kwargs)
+      if check_seed:
+        _check_seed(directory, episode.metadata, i, seed)
+    self._actions = [episode.steps['action'] for episode in recorded]
     self._episode = -1
     self._frame = 0
 
@@ -89,6 +117,50 @@ class ReplayPolicy:
         f'recorded episode {self._episode} ends after {len(actions) - 1} steps'
       )
     return actions[self._frame]
+
+
+def _as_json(value) -> Any:
+  """`value` as a JSON round trip gives it back (tuples as lists)."""
+  return json.loads(json.dumps(value or {}, sort_keys=True, default=repr))
+
+
+def _check_task(directory, metadata: dict, domain, task, task_kwargs) -> None:
+  """Raises PolicyError if a recorded episode's metadata names another
+  domain, task or task_kwargs (what it does not name passes)."""
+  said = metadata.get('domain', domain), metadata.get('task', task)
+  if said != (domain, task):
+    raise PolicyError(
+      f'the recording {directory} is of {said[0]}/{said[1]}, not '
+      f'{domain}/{task}'
+    )
+  kwargs = _as_json(metadata.get('task_kwargs', task_kwargs))
+  if kwargs != _as_json(task_kwargs):
+    raise PolicyError(
+      f'the recording {directory} was made with task_kwargs '
+      f'{json.dumps(kwargs)}, not {json.dumps(_as_json(task_kwargs))}'
+    )
+
+
+def _check_seed(directory, metadata: dict, index: int, seed) -> None:
+  """Raises PolicyError unless recorded episode `index` was reset as a
+  replay from `seed` resets it (with `seed + index`, as `evaluate` does);
+  passes where the recording does not say."""
+  session = metadata.get('seed')  # The seed evaluate was given.
+  reset = metadata.get('episode_seed')  # Its reset's (recent recordings).
+  if reset is None:  # Not said: an older recording's session seed.
+    if session is None or session == seed:
+      return
+  elif reset == (None if seed is None else seed + index):
+    return
+  elif session is None or session + index != reset:  # Appended sessions.
+    raise PolicyError(
+      f'episode {index} of the recording {directory} was reset with seed '
+      f'{reset}, not {seed} + {index} (--allow_other_seed replays it anyway)'
+    )
+  raise PolicyError(
+    f'the recording {directory} was made with seed {session}, not {seed} '
+    '(--allow_other_seed replays it anyway)'
+  )
 
 
 class NumpyPolicy:
@@ -497,7 +569,7 @@ def make_policy(
       ) from error
     return lambda timestep: task_.reference_action(env.physics)
   if name.startswith(REPLAY):
-    return ReplayPolicy(name[len(REPLAY) :], domain, task)
+    return ReplayPolicy(name[len(REPLAY) :], domain, task, task_kwargs)
   if name == BASELINE:
     name = str(baseline_path(domain, task))
   path = pathlib.Path(name)

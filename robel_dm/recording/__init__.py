@@ -12,7 +12,8 @@ A recording directory (the paths of LeRobotDataset v2.1):
   meta/episodes.jsonl   one line per ended episode: episode_index, length,
                         complete (and the error that ended it), domain, task,
                         task_kwargs, and what the recorder was given (seed,
-                        policy, device path ...)
+                        policy, device path ...; evaluate adds
+                        episode_seed, the seed of the episode's reset)
   data/chunk-000/episode_<index>.parquet   a finished episode's steps
   data/chunk-000/episode_<index>.arrows    an episode being recorded (an
                         Arrow IPC stream, its metadata in the schema; partial
@@ -27,9 +28,13 @@ first), `joint_targets` (what the actuators were told, rad), `next.reward`,
 `motor.current` (joint units) with `motor.timestamp` (time.monotonic()), and
 `motor.temperature`, `motor.voltage`, `motor.hardware_error` with
 `motor.health_timestamp` (read every 10 steps). Parquet and Arrow files open
-with pyarrow or pandas. The rows are timesteps, not LeRobot's frames (the
-action taken from a frame's observation): `lerobot.export` writes a
-LeRobotDataset v2.1. docs/recording.md has the details.
+with pyarrow or pandas. Each file describes itself (schema metadata
+`robel_dm.columns`; `describe_columns(path)` reads it from the file alone):
+the domain and task, and every column's unit, shape per row and dimension
+names (joint names, motor IDs, axes). The rows are timesteps, not
+LeRobot's frames (the action taken from a frame's observation):
+`lerobot.export` writes a LeRobotDataset v2.1. docs/recording.md has the
+details.
 
 Crash safety: steps are written to the episode's Arrow stream and flushed
 (and fsynced) at least every 0.5 s, by a background thread when no step
@@ -46,6 +51,7 @@ from robel_dm.recording.format import (  # noqa: F401
   MIN_FREE_BYTES,
   Episode,
   RecordingError,
+  describe_columns,
   read,
   summarize,
 )

@@ -45,6 +45,11 @@ INFO = 'meta/info.json'
 # The schema metadata key of an episode's stream (and Parquet file): the
 # episode's metadata as known at its start, JSON.
 METADATA_KEY = b'robel_dm.episode'
+# The schema metadata key of the description of an episode's columns, JSON:
+# domain, task, task_kwargs, fps and `columns`, column -> unit, shape per
+# row and (vector columns) the names of its dimensions (see
+# `describe_columns`).
+COLUMNS_KEY = b'robel_dm.columns'
 _EPISODE_FILE = re.compile(r'episode_(\d+)\.(arrows|parquet|parquet\.partial)')
 
 
@@ -191,6 +196,7 @@ class EpisodeWriter:
     directory: pathlib.Path,
     index: int,
     metadata: dict[str, Any] | None = None,
+    columns: dict[str, Any] | None = None,
   ):
     """Starts an episode (its stream is created at the first flush).
 
@@ -200,6 +206,8 @@ class EpisodeWriter:
       metadata: the episode's metadata as known at its start, stored in
         the stream's schema (what `read` reports if the episode never
         finishes).
+      columns: the description of the columns (see `describe_columns`),
+        stored in the schema of the stream and of the Parquet file.
     """
     self._pa = require_pyarrow()
     self.directory = directory
@@ -207,6 +215,11 @@ class EpisodeWriter:
     self.stream_path = directory / CHUNK / f'episode_{index:06d}.arrows'
     self.parquet_path = self.stream_path.with_suffix('.parquet')
     self._metadata = {**(metadata or {}), 'episode_index': index}
+    self._schema_metadata = {
+      METADATA_KEY: json.dumps(self._metadata).encode()
+    }  # Encoded once: the stream's schema is made at the first flush.
+    if columns is not None:
+      self._schema_metadata[COLUMNS_KEY] = json.dumps(columns).encode()
     self._rows: list[dict] = []
     self._writer = None
     self._file = None
@@ -251,9 +264,7 @@ class EpisodeWriter:
         created = self._writer is None
         if created:
           self._file = pa.OSFile(str(self.stream_path), 'wb')
-          schema = batch.schema.with_metadata(
-            {METADATA_KEY: json.dumps(self._metadata).encode()}
-          )
+          schema = batch.schema.with_metadata(self._schema_metadata)
           self._writer = pa.ipc.new_stream(self._file, schema)
         self._writer.write_batch(batch)
         self._file.flush()
@@ -374,6 +385,45 @@ def _stored_metadata(table) -> dict[str, Any] | None:
   except ValueError:
     return None
   return metadata if isinstance(metadata, dict) else None
+
+
+def describe_columns(path: str | pathlib.Path) -> dict[str, Any]:
+  """The description an episode file carries of its columns (a Parquet
+  file, or an `.arrows` stream), read from the file alone.
+
+  Returns:
+    domain, task, task_kwargs (what the recorder was told; None where it
+    was not), task_class, fps and `columns`: column -> {'unit': the unit
+    ('rad', 'rad/s', 's', 'mA', 'degC', 'V', 'm', 'm/s'; '' if unitless,
+    None if unknown), 'shape': the shape of one row's value ([] for a
+    scalar, [n] for a vector), 'names': a vector's dimension names (joint
+    names, motor IDs, axes; None if unknown)}.
+
+  Raises:
+    RecordingError: if the file is unreadable or carries no description
+      (recorded before robel_dm described its columns).
+  """
+  pa = require_pyarrow()
+  path = pathlib.Path(path)
+  try:
+    if path.suffix == '.arrows':
+      with pa.ipc.open_stream(str(path)) as reader:
+        schema = reader.schema
+    else:
+      schema = pa.parquet.read_schema(str(path))
+  except (OSError, pa.ArrowException) as error:
+    raise RecordingError(f'cannot read {path}: {error}') from error
+  stored = (schema.metadata or {}).get(COLUMNS_KEY)
+  try:
+    description = json.loads(stored) if stored else None
+  except ValueError:
+    description = None
+  if not isinstance(description, dict):
+    raise RecordingError(
+      f'{path} has no description of its columns (recorded before '
+      'robel_dm described them; docs/recording.md lists their units)'
+    )
+  return description
 
 
 def _read_lines(directory: pathlib.Path) -> dict[int, dict[str, Any]]:

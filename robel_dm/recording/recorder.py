@@ -10,6 +10,7 @@ import numpy as np
 
 from robel_dm import provenance
 from robel_dm.recording import format as format_lib
+from robel_dm.tasks import base, dkitty_walk
 
 
 def _value(value):
@@ -18,6 +19,145 @@ def _value(value):
   if array.ndim == 0:
     return array.item()
   return array.astype(np.float64).ravel().tolist()
+
+
+# The units of the columns (docs/recording.md has the table), each checked
+# against the code that makes the value: '' unitless, None unknown.
+_UNITS = {
+  'episode_index': '',
+  'frame_index': '',
+  'timestamp': 's',  # physics.data.time (a robot's: control ticks x period)
+  'wall_time': 's',  # time.time()
+  'step_type': '',
+  'action': '',  # Normalized, [-1, 1].
+  'joint_targets': 'rad',  # The position actuators' ctrl.
+  'next.reward': '',
+  'discount': '',
+  'next.done': '',
+  # hardware.robot.HardwareRobot: calibrated joint units; currents as the
+  # client reads them (mA, the motor's sign); temperature in 1 C steps;
+  # input voltage in 0.1 V steps; the timestamps are time.monotonic().
+  'motor.position': 'rad',
+  'motor.velocity': 'rad/s',
+  'motor.current': 'mA',
+  'motor.timestamp': 's',
+  'motor.temperature': 'degC',
+  'motor.voltage': 'V',
+  'motor.hardware_error': '',  # Hardware Error Status bits.
+  'motor.health_timestamp': 's',
+}
+# The observations' units, by key (the tasks' `_compute_features`).
+_OBSERVATION_UNITS = {
+  'qpos': 'rad',
+  'qvel': 'rad/s',
+  'qpos_error': 'rad',
+  'claw_qpos': 'rad',
+  'claw_qvel': 'rad/s',
+  'object_x': '',  # cos of the valve angle.
+  'object_y': '',  # sin of the valve angle.
+  'object_qvel': 'rad/s',
+  'last_action': '',
+  'target_error': 'rad',  # D'Claw: the wrapped valve angle error.
+  'goal_velocity': 'rad/s',
+  'upright': '',  # The torso's z axis' z component.
+  'root_pos': 'm',
+  'root_euler': 'rad',
+  'root_vel': 'm/s',
+  'root_angular_vel': 'rad/s',  # Rates of root_euler.
+  'kitty_qpos': 'rad',
+  'kitty_qvel': 'rad/s',
+  'pose_error': 'rad',
+  'current_facing': '',  # The torso's y axis on the floor.
+  'desired_facing': '',  # Unit vector.
+  'angle_error': 'rad',
+  'heading': '',  # A cosine.
+  'target_pos': 'm',
+  base.SCORE: '',
+  base.SUCCESS: '',
+  base.SAFETY: '',  # Counts.
+}
+# Keys whose unit differs on some tasks: task class -> key -> unit.
+_TASK_UNITS = {dkitty_walk.WalkTask: {'target_error': 'm'}}
+# Vector columns with one entry per joint of the robot, in action order.
+_JOINT_COLUMNS = frozenset(
+  ('action', 'joint_targets')
+  + tuple(
+    f'observation.{key}'
+    for key in (
+      'qpos',
+      'qvel',
+      'qpos_error',
+      'claw_qpos',
+      'claw_qvel',
+      'kitty_qpos',
+      'kitty_qvel',
+      'pose_error',
+      'last_action',
+    )
+  )  # fmt: skip
+)
+_XYZ, _XY = ('x', 'y', 'z'), ('x', 'y')
+# Observations whose entries are axes (world frame; root_euler's xyz
+# angles and their rates).
+_AXES = {
+  'root_pos': _XYZ,
+  'root_euler': _XYZ,
+  'root_vel': _XYZ,
+  'root_angular_vel': _XYZ,
+  'target_pos': _XY,
+  'target_error': _XY,
+  'current_facing': _XY,
+  'desired_facing': _XY,
+  base.SAFETY: base.SAFETY_FIELDS,
+}
+
+
+def _names(column: str, size: int, joints: tuple, motors: tuple):
+  """The dimension names of a vector column of `size` entries (None if
+  unknown)."""
+  key = column.removeprefix('observation.')
+  for names in (
+    joints if column in _JOINT_COLUMNS else None,
+    motors if column.startswith('motor.') else None,
+    _AXES.get(key) if key != column else None,
+  ):
+    if names is not None and len(names) == size:
+      return list(names)
+  return [key] if size == 1 and key != column else None
+
+
+def describe_columns(env, row: dict[str, Any], session: dict[str, Any]):
+  """The description of the columns of `row` (see
+  `format.describe_columns`): computed once per episode, from its first
+  row."""
+  task = env.task
+  joints = tuple(joint.name for joint in task.robot.joints)
+  robot = getattr(env, 'robot', None)  # A HardwareEnvironment's motors.
+  motors = tuple(robot.motor_ids) if robot is not None else ()
+  units = dict(_OBSERVATION_UNITS)
+  for cls in reversed(type(task).__mro__):
+    units.update(_TASK_UNITS.get(cls, {}))
+  columns = {}
+  for column, value in row.items():
+    if column.startswith('observation.'):
+      unit = units.get(column.removeprefix('observation.'))
+    elif column.startswith('reward_terms.'):
+      unit = ''
+    else:
+      unit = _UNITS.get(column)
+    description = {'unit': unit}
+    if isinstance(value, list):
+      description['shape'] = [len(value)]
+      description['names'] = _names(column, len(value), joints, motors)
+    else:
+      description['shape'] = []
+    columns[column] = description
+  return {
+    **{key: session.get(key) for key in ('domain', 'task', 'task_kwargs')},
+    'task_class': type(task).__name__,
+    'fps': 1 / env.control_timestep(),
+    'columns': columns,
+  }
 
 
 # What binds a recording directory to one task: the session metadata keys
@@ -162,10 +302,15 @@ class Recorder(dm_env.Environment):
     index = format_lib.next_index(self._directory)
     self._frame = 0
     self._start_wall = time.time()
+    row = self._row(index, timestep, action=None)
     self._writer = format_lib.EpisodeWriter(
-      self._directory, index, self._episode_metadata(index)
+      self._directory,
+      index,
+      self._episode_metadata(index),
+      describe_columns(self._env, row, self._metadata),
     )
-    self._record(timestep, action=None)
+    self._writer.add(row)
+    self._frame += 1
 
   def observation_spec(self):
     return self._env.observation_spec()
@@ -188,10 +333,15 @@ class Recorder(dm_env.Environment):
   # --- Recording -------------------------------------------------------------
 
   def _record(self, timestep: dm_env.TimeStep, action) -> None:
+    self._writer.add(self._row(self._writer.index, timestep, action))
+    self._frame += 1
+
+  def _row(self, index: int, timestep: dm_env.TimeStep, action) -> dict:
+    """The row of a timestep of episode `index`."""
     env = self._env
     size = env.action_spec().shape[0]
     row = {
-      'episode_index': self._writer.index,
+      'episode_index': index,
       'frame_index': self._frame,
       'timestamp': float(env.physics.data.time),
       'wall_time': time.time(),
@@ -220,8 +370,7 @@ class Recorder(dm_env.Environment):
       row['motor.voltage'] = robot.voltages.tolist()
       row['motor.hardware_error'] = robot.hardware_errors.tolist()
       row['motor.health_timestamp'] = robot.health_time
-    self._writer.add(row)
-    self._frame += 1
+    return row
 
   def _episode_metadata(self, index: int) -> dict[str, Any]:
     """What the episode's line says besides its ending (also stored in its
