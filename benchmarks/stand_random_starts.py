@@ -1,15 +1,16 @@
 r"""Where Stand Random's episodes start, and from which starts anything stands.
 
-    MUJOCO_GL=egl python benchmarks/stand_random_starts.py [--episodes=200]
+    MUJOCO_GL=egl python benchmarks/stand_random_starts.py [--episodes=200] \
+        [--policy=POLICY.npz]
 
 For `--episodes` initial states of dkitty/stand_random (one environment per
 controller, both seeded alike, so both see the same states), records how
 upright the torso is after ROBEL's settling (upright = cosine of the torso's
 tilt) and runs two controllers from it: the task's scripted ramp to standing
 (`reference`) and the shipped Stand Fixed policy (`baseline` of stand_fixed,
-evaluated here on the other variant on purpose). Prints the success rate of
-each, and of the better of the two, per band of initial uprightness, and the
-share of starts in each band.
+evaluated here on the other variant on purpose), and with `--policy` a
+policy file too. Prints the success rate of each, and of the better of the
+two, per band of initial uprightness, and the share of starts in each band.
 """
 
 import argparse
@@ -28,10 +29,12 @@ def _episodes(driver: str, count: int) -> tuple[np.ndarray, np.ndarray]:
   env = suite.load('dkitty', 'stand_random', seed=_SEED)
   if driver == 'reference':
     policy = policies.make_policy('reference', env, _SEED)
-  else:
+  elif driver == 'fixed':
     policy = policies.load(
       policies.baseline_path('dkitty', 'stand_fixed'), any_variant=True
     )
+  else:  # A policy file.
+    policy = policies.load(driver, any_variant=True)
   starts, success = [], []
   for _ in range(count):
     timestep = env.reset()
@@ -45,6 +48,9 @@ def _episodes(driver: str, count: int) -> tuple[np.ndarray, np.ndarray]:
 def main() -> None:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument('--episodes', type=int, default=200)
+  parser.add_argument(
+    '--policy', help='also a policy.npz (e.g. one trained on Stand Random)'
+  )
   args = parser.parse_args()
   starts, reference = _episodes('reference', args.episodes)
   same_starts, fixed = _episodes('fixed', args.episodes)
@@ -52,6 +58,10 @@ def main() -> None:
     raise RuntimeError('the two controllers saw different initial states')
   success = {'reference': reference, 'fixed policy': fixed}
   success['either'] = success['reference'] | success['fixed policy']
+  if args.policy:
+    policy_starts, success['policy'] = _episodes(args.policy, args.episodes)
+    if not np.array_equal(starts, policy_starts):
+      raise RuntimeError('the policy saw different initial states')
   print(f'{args.episodes} initial states of dkitty/stand_random')
   print('initial upright   share   ' + '  '.join(f'{k:>12s}' for k in success))
   for low, high in _BANDS:
