@@ -2,15 +2,23 @@
 
 1. Recovery. For each robot and excitation signal, a virtual bus runs a robot
    whose every joint has kp, damping and armature scaled by its own random
-   factor in [0.6, 1.6], friction loss 0.02 N m (the model has none) and a
-   7.5 ms control delay. The excitation is recorded through dynamixel_sdk and
-   fitted, with and without the measured currents. Prints, per parameter,
-   the largest relative error over the joints, the delay found, the RMS angle
-   error before and after, and the fit's time.
-2. Step cost. `env.step` of pose_fixed with and without a calibrated delay,
+   factor in [0.6, 1.6], friction loss 0.02 N m (`--friction=high`; the
+   model has none) or each joint's own in [0.002, 0.004] N m
+   (`--friction=low`) and a 7.5 ms control delay. The excitation is
+   recorded through dynamixel_sdk and fitted, with and without the
+   measured currents. Prints, per parameter, the largest relative error
+   over the joints, the delay found, the RMS angle error before and after,
+   and the fit's time.
+2. Uncertainty. Per run and parameter: the joint whose true error is the
+   most reported standard errors (SE) away, its error, SE and their ratio,
+   and in how many joints the true error is within 2 SEs; then the same
+   over all runs, and how many values are flagged as poorly determined.
+3. Step cost. `env.step` of pose_fixed with and without a calibrated delay,
    each against raw MuJoCo stepping the same trajectory in the same run.
 
-    MUJOCO_GL=egl python benchmarks/sysid.py [--seeds 3] [--duration 10]
+    MUJOCO_GL=egl python benchmarks/sysid.py [--seeds 3] [--duration 10] \
+      [--friction high,low] [--domains dclaw,dkitty] [--signals steps,chirp] \
+      [--currents yes,no] [--rounds 7]   # --rounds 0: no step cost
 """
 
 import argparse
@@ -25,33 +33,42 @@ from robel_dm.sysid import excite, fit
 from robel_dm.tasks import excitation
 
 NOMINAL = {'dclaw': (2.0, 0.1, 0.001), 'dkitty': (5.0, 1.0, 0.001)}
-FRICTIONLOSS = 0.02  # N m
+# Friction loss of the truth's joints, N m: one value, or a range each
+# joint draws its own value from.
+FRICTIONLOSS = {'high': 0.02, 'low': (0.002, 0.004)}
 DELAY = 0.0075  # s
 # A fitted value further off than this counts as wrong; the report should
 # flag every wrong value (`unflagged` counts those it does not).
 TOLERANCE = 0.15
 
 
-def _truth(domain: str, seed: int) -> calibration.Calibration:
+def _truth(domain: str, seed: int, friction: str) -> calibration.Calibration:
   names = [
     joint.name for joint in excitation.JointExcitation(domain, 1.0).robot.joints
   ]
   kp, damping, armature = NOMINAL[domain]
-  factors = np.random.default_rng(seed).uniform(0.6, 1.6, (len(names), 3))
+  rng = np.random.default_rng(seed)
+  factors = rng.uniform(0.6, 1.6, (len(names), 3))
+  frictionloss = np.broadcast_to(
+    rng.uniform(*FRICTIONLOSS[friction], len(names))
+    if friction == 'low'
+    else FRICTIONLOSS[friction],
+    len(names),
+  )
   joints = {
     name: {
       'kp': kp * f[0],
       'damping': damping * f[1],
       'armature': armature * f[2],
-      'frictionloss': FRICTIONLOSS,
+      'frictionloss': float(loss),
     }
-    for name, f in zip(names, factors, strict=True)
+    for name, f, loss in zip(names, factors, frictionloss, strict=True)
   }
   return calibration.Calibration(domain, joints, control_delay=DELAY)
 
 
-def recovery(domain, signal, seed, duration, use_current) -> dict:
-  truth = _truth(domain, seed)
+def recovery(domain, signal, seed, duration, use_current, friction) -> dict:
+  truth = _truth(domain, seed, friction)
   with tempfile.TemporaryDirectory() as directory:
     env = suite.load_excitation(
       domain,
@@ -73,17 +90,34 @@ def recovery(domain, signal, seed, duration, use_current) -> dict:
   start = time.perf_counter()
   result = fit.fit(trajectories, domain)
   seconds = time.perf_counter() - start
-  errors, unflagged = {}, 0
+  errors, unflagged, uncertainty = {}, 0, {}
+  names = result.joint_names
   for name, values in result.fitted.items():
     true = np.array([truth.joints[j][name] for j in result.joint_names])
     relative = np.abs(values / true - 1)
     errors[name] = float(np.max(relative))
+    # True error in reported standard errors, per joint.
+    ratio = np.abs(values - true) / result.standard_error[name]
+    flagged = [f'{j}.{name}' in result.not_identified for j in names]
+    worst = int(np.argmax(ratio))
+    uncertainty[name] = {
+      'ratios': ratio.tolist(),
+      'errors': relative.tolist(),
+      'flagged': flagged,
+      'worst': (
+        result.joint_names[worst],
+        float(relative[worst]),
+        float(result.uncertainty[name][worst]),
+        float(ratio[worst]),
+      ),
+    }
     unflagged += sum(
       error > TOLERANCE and f'{joint}.{name}' not in result.not_identified
       for joint, error in zip(result.joint_names, relative, strict=True)
     )
   return {
     'errors': errors,
+    'uncertainty': uncertainty,
     'delay_ms': result.control_delay * 1e3,
     'rms_before_deg': float(np.degrees(np.sqrt(np.mean(result.rms_before**2)))),
     'rms_after_deg': float(np.degrees(np.sqrt(np.mean(result.rms_after**2)))),
@@ -129,36 +163,84 @@ def step_cost(steps: int, rounds: int) -> dict:
   return results
 
 
+def _coverage_row(label, data) -> str:
+  """Uncertainty of one run and parameter (data: recovery's)."""
+  joint, error, se, ratio = data['worst']
+  ratios = np.array(data['ratios'])
+  return (
+    f'| {label} | {joint} | {error:.1%} | {se:.1%} | {ratio:.1f} | '
+    f'{np.sum(ratios <= 2)}/{len(ratios)} | {sum(data["flagged"])} |'
+  )
+
+
 def main():
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument('--seeds', type=int, default=3)
   parser.add_argument('--duration', type=float, default=10.0)
+  parser.add_argument('--friction', default='high,low')
+  parser.add_argument('--domains', default='dclaw,dkitty')
+  parser.add_argument('--signals', default=','.join(excite.SIGNALS))
+  parser.add_argument('--currents', default='yes,no')
   parser.add_argument('--steps', type=int, default=400)
   parser.add_argument('--rounds', type=int, default=7)
   arguments = parser.parse_args()
   print(
-    '| robot | signal | currents | seed | max error kp | damping | '
+    '| robot | signal | currents | friction | seed | max error kp | damping | '
     'friction loss | armature | delay ms | RMS deg before -> after (worst '
     'joint after/before) | flagged | off >15% unflagged | fit s '
     '(simulations) |'
   )
-  print('|' + '---|' * 13)
-  for domain in ('dclaw', 'dkitty'):
-    for signal in excite.SIGNALS:
-      for use_current in (True, False):
-        for seed in range(1, arguments.seeds + 1):
-          r = recovery(domain, signal, seed, arguments.duration, use_current)
-          e = r['errors']
-          print(
-            f'| {domain} | {signal} | {"yes" if use_current else "no"} | '
-            f'{seed} | {e["kp"]:.1%} | {e["damping"]:.1%} | '
-            f'{e["frictionloss"]:.1%} | {e["armature"]:.1%} | '
-            f'{r["delay_ms"]:.1f} | {r["rms_before_deg"]:.3f} -> '
-            f'{r["rms_after_deg"]:.4f} ({r["worst_ratio"]:.3f}) | '
-            f'{r["not_identified"]} | {r["unflagged"]} | '
-            f'{r["seconds"]:.1f} ({r["simulations"]}) |',
-            flush=True,
-          )
+  print('|' + '---|' * 14)
+  runs = []
+  for domain in arguments.domains.split(','):
+    for signal in arguments.signals.split(','):
+      for currents in arguments.currents.split(','):
+        for friction in arguments.friction.split(','):
+          for seed in range(1, arguments.seeds + 1):
+            r = recovery(
+              domain, signal, seed, arguments.duration, currents == 'yes',
+              friction,
+            )  # fmt: skip
+            label = f'{domain} | {signal} | {currents} | {friction} | {seed}'
+            runs.append((label, r))
+            e = r['errors']
+            print(
+              f'| {label} | {e["kp"]:.1%} | {e["damping"]:.1%} | '
+              f'{e["frictionloss"]:.1%} | {e["armature"]:.1%} | '
+              f'{r["delay_ms"]:.1f} | {r["rms_before_deg"]:.3f} -> '
+              f'{r["rms_after_deg"]:.4f} ({r["worst_ratio"]:.3f}) | '
+              f'{r["not_identified"]} | {r["unflagged"]} | '
+              f'{r["seconds"]:.1f} ({r["simulations"]}) |',
+              flush=True,
+            )
+  print(
+    '\nUncertainty: per run and parameter, the joint whose true error is the '
+    'most standard errors (SE) away; errors and SEs relative to the value.\n'
+  )
+  print(
+    '| robot | signal | currents | friction | seed | parameter | joint | '
+    'true error | reported SE | error/SE | within 2 SE | flagged |'
+  )
+  print('|' + '---|' * 12)
+  total: dict[str, list] = {}
+  for label, r in runs:
+    for name, data in r['uncertainty'].items():
+      print(_coverage_row(f'{label} | {name}', data))
+      total.setdefault(name, []).append(data)
+  print('\nOver all runs (joint values):')
+  for name, data in total.items():
+    ratios = np.concatenate([d['ratios'] for d in data])
+    flagged = np.concatenate([d['flagged'] for d in data])
+    wrong = np.concatenate([d['errors'] for d in data]) > TOLERANCE
+    print(
+      f'  {name:<13} true error within 2 SE in {np.sum(ratios <= 2)} of '
+      f'{len(ratios)}, within 3 SE in {np.sum(ratios <= 3)}; median '
+      f'error/SE {np.median(ratios):.2f}, largest {np.max(ratios):.1f}; '
+      f'flagged {int(np.sum(flagged))}, off >15% {int(np.sum(wrong))} '
+      f'(unflagged {int(np.sum(wrong & ~flagged))})'
+    )
+  if arguments.rounds <= 0:
+    return
   print('\nenv.step of dclaw pose_fixed against raw MuJoCo (same trajectory):')
   for label, (env_s, raw_s) in step_cost(
     arguments.steps, arguments.rounds

@@ -5,7 +5,8 @@
      python -m robel_dm.sysid excite --domain=dclaw \
        --device_path=/dev/ttyUSB0 --record=runs/excite
 
-2. Fit the joint dynamics and control delay to them:
+2. Fit the joint dynamics and control delay to them (the report warns, one
+   line each, of values the recordings do not pin down):
 
      python -m robel_dm.sysid fit runs/excite --domain=dclaw \
        --output=dclaw_calibration.json

@@ -7,7 +7,8 @@
 
 `excite` drives the robot through an excitation sequence and records it;
 `fit` fits the simulated robot to recordings, prints the per-joint error
-before and after, and writes the calibration that `suite.load(...,
+before and after and a warning line for each poorly determined value, and
+writes the calibration that `suite.load(...,
 dynamics=FILE)` and `evaluate --dynamics=FILE` apply. See docs/sysid.md.
 """
 
@@ -150,13 +151,23 @@ def report(result: fit_lib.FitResult) -> str:
     f'{np.degrees(np.sqrt(np.mean(result.rms_after**2))):.3f} deg; '
     f'{result.evaluations} simulations'
   )
-  if result.not_identified:
-    lines.append(
-      '? not pinned down by these recordings (relative standard error over '
-      f'{fit_lib.IDENTIFIED_UNCERTAINTY:.0%}): '
-      + ', '.join(result.not_identified)
-    )
+  lines += warning_lines(result)
   return '\n'.join(lines)
+
+
+def warning_lines(result: fit_lib.FitResult) -> list[str]:
+  """One line per poorly determined value (marked '?' in the table)."""
+  lines = []
+  for name, reason in result.poorly_determined.items():
+    joint, parameter = name.split('.')
+    j = result.joint_names.index(joint)
+    value = result.fitted[parameter][j]
+    error = result.standard_error[parameter][j]
+    lines.append(
+      f'? warning: {name} = {value:.4g} +- {error:.2g} (standard error) is '
+      f'poorly determined: {reason}'
+    )
+  return lines
 
 
 def main(argv: list[str]) -> int:

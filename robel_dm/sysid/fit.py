@@ -39,9 +39,23 @@ FRICTIONLOSS_BOUNDS = (1e-4, 0.5)  # N m
 # Friction loss is optimized in these units (N m) and starts here.
 FRICTIONLOSS_UNIT = 0.01
 FRICTIONLOSS_START = 0.001
-# A parameter whose relative standard error exceeds this, or that ends on a
-# search bound, is reported as not identified by the recordings.
-IDENTIFIED_UNCERTAINTY = 0.1
+# A parameter whose relative standard error exceeds this (two standard
+# errors over 15%), or that ends on a search bound, or any parameter of a
+# fit that did not converge, is reported as poorly determined.
+IDENTIFIED_UNCERTAINTY = 0.075
+# Standard errors. The residuals are not independent: quantized initial
+# states and encoder, velocity and current readings leave errors that
+# persist for several steps (lag-1 autocorrelation about 0.6 on the virtual
+# bus), so the Gauss-Newton covariance s^2 (J^T J)^-1, which counts every
+# row as an independent sample, was too small (79% of true errors within 2
+# of its standard errors on 5 s D'Claw recordings). The fit uses the
+# autocorrelation-consistent sandwich (Newey-West): (J^T J)^-1 S
+# (J^T J)^-1, S summing the products of the steps' gradients J_t^T r_t up
+# to this far apart with Bartlett weights (1 - lag / (bandwidth + 1)),
+# within each episode, and a degrees-of-freedom correction
+# (`_standard_errors`). Of 0.1, 0.2 and 0.3 s, 0.2 s came closest to a
+# Gaussian's coverage on 5 s recordings (docs/sysid.md).
+HAC_BANDWIDTH = 0.2  # s
 # Finite-difference step of the Jacobian, relative to the parameter.
 DIFF_STEP = 1e-4
 
@@ -101,7 +115,7 @@ def load_trajectories(directory, domain: str) -> list[Trajectory]:
       current = steps['motor.current'][:, :joints] * np.asarray(scales)
     trajectories.append(
       Trajectory(
-        targets=steps['joint_targets'],
+        targets=_sent_targets(steps['joint_targets'], metadata),
         qpos=qpos,
         qvel=steps['observation.qvel'],
         current=current,
@@ -113,6 +127,26 @@ def load_trajectories(directory, domain: str) -> list[Trajectory]:
       '`python -m robel_dm.sysid excite`)'
     )
   return trajectories
+
+
+def _sent_targets(targets: np.ndarray, metadata: dict) -> np.ndarray:
+  """The targets the motors acted on: a robot (or the virtual bus) receives
+  each goal rounded to a whole encoder tick in the motor's frame (see
+  `DynamixelClient.write_goal_positions`), the recording keeps the exact
+  target. Up to half a tick (0.00077 rad) is a torque error of kp times
+  that, the size of a small friction loss; replaying the exact targets
+  biased kp by 1-2% (benchmarks/sysid.py). Recordings without a robot
+  configuration (simulation) are returned as they are."""
+  motors = (metadata.get('robot') or {}).get('joints') or ()
+  if len(motors) != targets.shape[1] or not all(
+    'scale' in m and 'offset' in m for m in motors
+  ):
+    return targets
+  scale = np.array([float(m['scale']) for m in motors])
+  offset = np.array([float(m['offset']) for m in motors])
+  tick = control_table.RADIANS_PER_TICK
+  ticks = np.rint((targets - offset) / scale / tick)
+  return scale * ticks * tick + offset
 
 
 class ReplaySimulator:
@@ -207,13 +241,18 @@ class FitResult:
     joint_names: the joints, in action order.
     nominal: the model's values before the fit, parameter -> per joint.
     fitted: the fitted values, parameter -> per joint.
-    uncertainty: the relative standard error of each fitted value
-      (friction loss: relative to at least `FRICTIONLOSS_UNIT`), parameter
-      -> per joint.
+    standard_error: the standard error of each fitted value (its units),
+      parameter -> per joint; inf if the recordings are too short to
+      estimate one.
+    uncertainty: the standard error relative to the value (friction loss:
+      to at least its lower bound), parameter -> per joint.
     rms_before: per-joint RMS angle error of the model, rad.
     rms_after: per-joint RMS angle error of the fit, rad.
     control_delay: the fitted delay, s.
-    not_identified: 'joint.parameter' names the recordings do not pin down.
+    poorly_determined: 'joint.parameter' -> why the recordings do not pin
+      it down (a relative standard error over `IDENTIFIED_UNCERTAINTY`, a
+      value on a search bound, a fit that did not converge).
+    not_identified: the names of `poorly_determined`, in order.
     evaluations: simulations run.
   """
 
@@ -221,10 +260,12 @@ class FitResult:
   joint_names: tuple[str, ...]
   nominal: dict[str, np.ndarray]
   fitted: dict[str, np.ndarray]
+  standard_error: dict[str, np.ndarray]
   uncertainty: dict[str, np.ndarray]
   rms_before: np.ndarray
   rms_after: np.ndarray
   control_delay: float
+  poorly_determined: dict[str, str]
   not_identified: list[str]
   evaluations: int
 
@@ -403,18 +444,16 @@ def fit(
     delay, result = best, candidates[best]
   x = result.x
   fitted = problem.values(x)
-  uncertainty = _uncertainty(problem, result, fitted)
+  standard_error = _standard_errors(problem, result)
+  uncertainty = {
+    name: _relative(name, standard_error[name], fitted[name])
+    for name in parameters
+  }
   rms_after = problem.angle_rms(result.fun)
   names = simulator.joint_names
-  low, high = problem.values(bounds[0]), problem.values(bounds[1])
-  not_identified = [
-    f'{names[j]}.{name}'
-    for name in parameters
-    for j in range(len(names))
-    if not uncertainty[name][j] <= IDENTIFIED_UNCERTAINTY
-    or np.isclose(fitted[name][j], low[name][j], rtol=1e-3, atol=1e-6)
-    or np.isclose(fitted[name][j], high[name][j], rtol=1e-3)
-  ]
+  poorly_determined = _poorly_determined(
+    problem, fitted, uncertainty, bounds, converged=result.status > 0
+  )
   control_delay = delay * simulator.timestep
   calibration = calibration_lib.Calibration(
     domain=domain,
@@ -430,8 +469,10 @@ def fit(
       'used_currents': use_current,
       'rms_angle_error_before': rms_before.tolist(),
       'rms_angle_error_after': rms_after.tolist(),
-      'relative_uncertainty': {n: u.tolist() for n, u in uncertainty.items()},
-      'not_identified': not_identified,
+      'standard_error': {n: _json(e) for n, e in standard_error.items()},
+      'relative_uncertainty': {n: _json(u) for n, u in uncertainty.items()},
+      'not_identified': list(poorly_determined),
+      'poorly_determined': poorly_determined,
     },
   )
   return FitResult(
@@ -439,29 +480,113 @@ def fit(
     joint_names=names,
     nominal={name: simulator.nominal[name] for name in parameters},
     fitted=fitted,
+    standard_error=standard_error,
     uncertainty=uncertainty,
     rms_before=rms_before,
     rms_after=rms_after,
     control_delay=control_delay,
-    not_identified=not_identified,
+    poorly_determined=poorly_determined,
+    not_identified=list(poorly_determined),
     evaluations=problem.evaluations,
   )
 
 
-def _uncertainty(problem, result, fitted) -> dict[str, np.ndarray]:
-  """Standard errors from the Gauss-Newton covariance at the optimum,
-  relative to the value (friction loss: to at least FRICTIONLOSS_UNIT)."""
+def _json(values: np.ndarray) -> list[float | None]:
+  """Per-joint values for the calibration file, None where not finite."""
+  return [float(v) if np.isfinite(v) else None for v in values]
+
+
+def _poorly_determined(
+  problem, fitted, uncertainty, bounds, converged: bool
+) -> dict[str, str]:
+  """'joint.parameter' -> why it is poorly determined, for those that are."""
+  names = problem.simulator.joint_names
+  low, high = problem.values(bounds[0]), problem.values(bounds[1])
+  reasons = {}
+  for name in problem.parameters:
+    for j, joint in enumerate(names):
+      value, relative = fitted[name][j], uncertainty[name][j]
+      if not converged:
+        reason = 'the fit stopped at its evaluation limit, not converged'
+      elif np.isclose(value, low[name][j], rtol=1e-3, atol=1e-6):
+        reason = f'on the lower search bound {low[name][j]:.4g}'
+      elif np.isclose(value, high[name][j], rtol=1e-3):
+        reason = f'on the upper search bound {high[name][j]:.4g}'
+      elif not np.isfinite(relative):
+        reason = 'no standard error: the recordings are too short'
+      elif relative > IDENTIFIED_UNCERTAINTY:
+        reason = (
+          f'standard error {relative:.1%} of the value (over '
+          f'{IDENTIFIED_UNCERTAINTY:.1%})'
+        )
+      else:
+        continue
+      reasons[f'{joint}.{name}'] = reason
+  return reasons
+
+
+def _step_gradients(problem, result) -> np.ndarray:
+  """Each step's share J_t^T r_t of the cost's gradient, (steps, params)."""
+  jacobian = sparse.csr_matrix(result.jac)
+  weighted = jacobian.multiply(result.fun[:, None]).tocsr()
+  rows = problem.components * problem.joints
+  steps = problem.rows // rows
+  # Sums each step's rows (angle, velocity, current of every joint).
+  summing = sparse.csr_matrix(
+    (np.ones(problem.rows), (np.arange(problem.rows) // rows,
+                             np.arange(problem.rows))),
+    shape=(steps, problem.rows),
+  )  # fmt: skip
+  return np.asarray((summing @ weighted).todense())
+
+
+def _hac(gradients: np.ndarray, lengths, bandwidth: int) -> np.ndarray:
+  """Newey-West: the covariance of the summed gradients, counting their
+  correlation up to `bandwidth` steps apart (Bartlett weights), within
+  each episode."""
+  meat = np.zeros((gradients.shape[1],) * 2)
+  start = 0
+  for length in lengths:
+    g = gradients[start : start + length]
+    start += length
+    meat += g.T @ g
+    for lag in range(1, min(bandwidth, length - 1) + 1):
+      product = g[:-lag].T @ g[lag:]
+      meat += (1 - lag / (bandwidth + 1)) * (product + product.T)
+  return meat
+
+
+def _standard_errors(problem, result) -> dict[str, np.ndarray]:
+  """Absolute standard errors, parameter -> per joint; inf where the
+  recordings are too short to estimate one (see HAC_BANDWIDTH)."""
   jacobian = result.jac
   jacobian = jacobian.toarray() if sparse.issparse(jacobian) else jacobian
-  dof = max(1, len(result.fun) - len(result.x))
-  variance = 2 * result.cost / dof
-  information = jacobian.T @ jacobian
-  covariance = np.linalg.pinv(information) * variance
-  std = np.sqrt(np.clip(np.diag(covariance), 0, None))
-  scaled = problem.values(std)
-  uncertainty = {}
-  for name in problem.parameters:
-    # Friction loss may be 0: relative to at least one unit.
-    floor = FRICTIONLOSS_UNIT if name == 'frictionloss' else 1e-12
-    uncertainty[name] = scaled[name] / np.maximum(fitted[name], floor)
-  return uncertainty
+  bread = np.linalg.pinv(jacobian.T @ jacobian)
+  lengths = [len(t.targets) - 1 for t in problem.trajectories]
+  timestep = problem.simulator.substeps * problem.simulator.timestep
+  bandwidth = max(1, round(HAC_BANDWIDTH / timestep))
+  meat = _hac(_step_gradients(problem, result), lengths, bandwidth)
+  variance = np.clip(np.diag(bread @ meat @ bread), 0, None)
+  # Degrees of freedom: the Bartlett weights sum to bandwidth + 1 steps, so
+  # the steps hold about sum(lengths) / (bandwidth + 1) independent
+  # stretches, and the p parameters of a chain were fitted to them; as
+  # s^2 divides by n - p, the variance is divided by 1 - p (bandwidth + 1) /
+  # sum(lengths). With p (bandwidth + 1) steps or fewer nothing is left to
+  # estimate it.
+  chains = problem.simulator.chains
+  per_chain = np.bincount(chains) * len(problem.parameters)
+  fitted_share = (
+    per_chain[np.tile(chains, len(problem.parameters))]
+    * (bandwidth + 1)
+    / sum(lengths)
+  )
+  with np.errstate(divide='ignore'):
+    variance = np.where(fitted_share < 1, variance / (1 - fitted_share), np.inf)
+  return problem.values(np.sqrt(variance))
+
+
+def _relative(name: str, error: np.ndarray, value: np.ndarray) -> np.ndarray:
+  """A standard error relative to the value (friction loss: to at least
+  its lower search bound, as it may be fitted to about 0)."""
+  floor = FRICTIONLOSS_BOUNDS[0] if name == 'frictionloss' else 1e-12
+  return error / np.maximum(value, floor)
