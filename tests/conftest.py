@@ -74,4 +74,36 @@ def kitty_envs():
     env.close()
 
 
+# --- Commands and what they build --------------------------------------------
+
+
+@pytest.fixture(scope='module')
+def evaluate_flags():
+  """The evaluate command's flags, defined for one test module only."""
+  from absl import flags  # noqa: PLC0415
+
+  from robel_dm import evaluate  # noqa: PLC0415
+
+  before = set(flags.FLAGS)
+  evaluate._define_flags()
+  yield
+  flags.FLAGS.unparse_flags()
+  for name in set(flags.FLAGS) - before:
+    delattr(flags.FLAGS, name)
+
+
+@pytest.fixture
+def built(monkeypatch):
+  """The environments `suite.load` builds during the test."""
+  calls = []
+  load = suite.load
+
+  def watched(*args, **kwargs):
+    calls.append((args, kwargs))
+    return load(*args, **kwargs)
+
+  monkeypatch.setattr(suite, 'load', watched)
+  return calls
+
+
 # --- ROBEL's rewards (docs/robel_reference.md sections 2.5-2.7) ---------------

@@ -16,7 +16,7 @@ from absl import flags
 import numpy as np
 import pytest
 
-from robel_dm import cli_checks, evaluate, policies, result_table, suite
+from robel_dm import cli_checks, evaluate, policies, result_table
 from robel_dm.hardware.tracking import spec as tracker_spec
 
 FLAGS = flags.FLAGS
@@ -24,19 +24,8 @@ _TASK = ('dclaw', 'pose_fixed')
 _KEYS = ('qpos', 'last_action', 'qpos_error')  # 27 values; 9 actions.
 
 
-@pytest.fixture(scope='module')
-def _command_flags():
-  """The command's flags, defined for this module's tests only."""
-  before = set(FLAGS)
-  evaluate._define_flags()
-  yield
-  FLAGS.unparse_flags()
-  for name in set(FLAGS) - before:
-    delattr(FLAGS, name)
-
-
 @pytest.fixture
-def run_main(_command_flags, capsys):
+def run_main(evaluate_flags, capsys):
   """Runs the command's main() with command-line flags; returns its exit
   code, stdout and stderr."""
 
@@ -49,20 +38,6 @@ def run_main(_command_flags, capsys):
 
   yield run
   FLAGS.unparse_flags()
-
-
-@pytest.fixture
-def built(monkeypatch):
-  """The environments `suite.load` builds during the test."""
-  calls = []
-  load = suite.load
-
-  def watched(*args, **kwargs):
-    calls.append((args, kwargs))
-    return load(*args, **kwargs)
-
-  monkeypatch.setattr(suite, 'load', watched)
-  return calls
 
 
 def _assert_one_line_error(code, out, err, *names):

@@ -28,20 +28,6 @@ def recorded(tmp_path_factory):
   return directory
 
 
-@pytest.fixture
-def built(monkeypatch):
-  """The environments `suite.load` builds during the test."""
-  calls = []
-  load = suite.load
-
-  def watched(*args, **kwargs):
-    calls.append((args, kwargs))
-    return load(*args, **kwargs)
-
-  monkeypatch.setattr(suite, 'load', watched)
-  return calls
-
-
 def _steps(directory):
   return [e.steps for e in recording.read(directory)]
 
@@ -133,19 +119,8 @@ def test_a_recording_that_does_not_say_replays(tmp_path):
     policies.ReplayPolicy(older, *_TASK, seed=7, check_seed=True)
 
 
-@pytest.fixture(scope='module')
-def _command_flags():
-  """The command's flags, defined for this module's tests only."""
-  before = set(FLAGS)
-  evaluate._define_flags()
-  yield
-  FLAGS.unparse_flags()
-  for name in set(FLAGS) - before:
-    delattr(FLAGS, name)
-
-
 def test_the_command_refuses_in_one_line_unless_allowed(
-  recorded, built, _command_flags, capsys
+  recorded, built, evaluate_flags, capsys
 ):
   argv = ['evaluate', '--domain=dclaw', '--task=turn_random', '--seed=8',
           f'--policy=replay:{recorded}', '--episodes=1']  # fmt: skip
