@@ -90,7 +90,7 @@ def summarize(
       for field in base.SAFETY_FIELDS
     },
     'spread': {
-      'success': provenance.spread(values('success')),
+      'success': provenance.proportion(values('success')),
       'return': provenance.spread(values('return')),
       'mean_score': provenance.spread(values('mean_score')),
     },

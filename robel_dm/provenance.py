@@ -4,7 +4,8 @@
 Python and, when present, dynamixel-sdk, Gymnasium, Stable-Baselines3,
 torch), the git revision of a source checkout (with `+dirty` for local
 changes), the UTC time and the machine. `spread()` gives the mean, the
-standard deviation and a 95% interval of per-episode values.
+standard deviation and a 95% interval of per-episode values;
+`proportion()` the same for successes, with a Wilson score interval.
 """
 
 import datetime
@@ -90,3 +91,31 @@ def spread(values) -> dict[str, float]:
   std = float(values.std(ddof=1)) if values.size > 1 else 0.0
   half = _Z95 * std / math.sqrt(values.size)
   return {'mean': mean, 'std': std, 'ci95': [mean - half, mean + half]}
+
+
+def proportion(successes) -> dict[str, Any]:
+  """Rate, standard deviation and a 95% Wilson score interval of
+  per-episode successes: inside [0, 1] and not empty when every episode
+  succeeds or fails (a normal interval gives -0.24..0.74 for 1 in 4, and
+  1.00..1.00 for 4 in 4)."""
+  values = np.asarray(successes, dtype=float)
+  n = values.size
+  if not n:
+    return {
+      'mean': math.nan,
+      'std': math.nan,
+      'ci95': [math.nan, math.nan],
+      'interval': 'wilson',
+    }
+  rate = float(values.mean())
+  z2 = _Z95**2
+  centre = (rate + z2 / (2 * n)) / (1 + z2 / n)
+  half = (
+    _Z95 * math.sqrt(rate * (1 - rate) / n + z2 / (4 * n * n)) / (1 + z2 / n)
+  )
+  return {
+    'mean': rate,
+    'std': float(values.std(ddof=1)) if n > 1 else 0.0,
+    'ci95': [max(0.0, centre - half), min(1.0, centre + half)],
+    'interval': 'wilson',
+  }

@@ -34,7 +34,7 @@ def format_summary(results: dict[str, Any]) -> str:
     [
       '-' * len(_ROW_HEADER),
       f'success rate      {results["success_rate"]:.2f} '
-      f'({results["episodes"]} episodes; 95% interval '
+      f'({results["episodes"]} episodes; 95% Wilson interval '
       f'{spread["success"]["ci95"][0]:.2f}..{spread["success"]["ci95"][1]:.2f})',
       f'mean return       {results["mean_return"]:.2f} '
       f'(std {spread["return"]["std"]:.2f})',
