@@ -130,6 +130,24 @@ def test_runs_without_a_demonstrator_wait(sandbox, monkeypatch):
   assert 'waits for a solved policy' in lines[0]
 
 
+def test_a_shipped_policy_demonstrates_in_a_checkout_without_runs(
+  sandbox, monkeypatch
+):
+  # A fresh clone has policies/ but not runs/: demonstrations must not wait.
+  monkeypatch.setitem(
+    baselines.PLAN['tasks'], 'dclaw/turn_fixed', {'steps': 8, 'eval_every': 8}
+  )
+  shipped = baselines.ROOT / 'policies' / 'dclaw_turn_fixed.npz'
+  shutil.copy(shipped, sandbox / 'policies' / 'dclaw_turn_fixed.npz')
+  assert baselines.best_policy('dclaw', 'turn_fixed') == (
+    sandbox / 'policies' / 'dclaw_turn_fixed.npz'
+  )
+  run = baselines.Run('dclaw', 'turn_fixed', 'bc', 0)
+  lines = []
+  assert baselines.train_run(run, log=lines.append) is not None
+  assert 'demonstrations of dclaw/turn_fixed by' in lines[0]
+
+
 def test_the_report_is_derived_from_the_records(sandbox):
   baselines.train_queue(0, 1, 'dclaw_pose_*_sac_seed0', None)
   rows = json.loads(baselines.RESULTS.read_text())
