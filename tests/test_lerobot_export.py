@@ -1,6 +1,9 @@
-"""Recordings exported as LeRobotDatasets (v2.1): the files, the metadata,
-and the frame convention (frame t: an observation, the action taken from
-it, and what followed), checked against a fresh simulation."""
+"""Recordings exported as LeRobotDatasets (v3.0, the default, and v2.1):
+the files, the metadata, and the frame convention (frame t: an observation,
+the action taken from it, and what followed), checked against the format's
+rules and a fresh simulation. (Loading with LeRobot itself needs another
+torch than the `learn` extra: tests/external/load_with_lerobot.py, run by
+hand, docs/recording.md.)"""
 
 import json
 import subprocess
@@ -23,12 +26,25 @@ INFO_KEYS = {
   'total_tasks', 'total_videos', 'total_chunks', 'chunks_size', 'fps',
   'splits', 'data_path', 'video_path', 'features',
 }  # fmt: skip
+# LeRobot 3.0's DatasetInfo: every key it knows (it warns about others).
+INFO_KEYS_V30 = {
+  'codebase_version', 'fps', 'features', 'total_episodes', 'total_frames',
+  'total_tasks', 'chunks_size', 'data_files_size_in_mb',
+  'video_files_size_in_mb', 'data_path', 'video_path', 'robot_type',
+  'splits',
+}  # fmt: skip
+# What LeRobot 3.0 reads from each row of meta/episodes/.
+EPISODE_KEYS_V30 = {
+  'episode_index', 'tasks', 'length', 'data/chunk_index', 'data/file_index',
+  'dataset_from_index', 'dataset_to_index', 'meta/episodes/chunk_index',
+  'meta/episodes/file_index',
+}  # fmt: skip
 # LeRobot's check_timestamps_sync tolerance, s.
 TIMESTAMP_TOLERANCE = 1e-4
 
 
 @pytest.fixture(scope='module')
-def dataset(tmp_path_factory):
+def recorded(tmp_path_factory):
   root = tmp_path_factory.mktemp('export')
   evaluate.evaluate(
     'dclaw', 'pose_fixed', 2, policy='random', seed=7, record=root / 'rec'
@@ -38,8 +54,19 @@ def dataset(tmp_path_factory):
   env.reset()
   env.step(np.zeros(9))
   env.close()
-  info = lerobot.export(root / 'rec', root / 'out')
-  return root / 'out', info
+  return root / 'rec'
+
+
+@pytest.fixture(scope='module')
+def dataset(recorded):
+  info = lerobot.export(recorded, recorded.parent / 'v21', version='v2.1')
+  return recorded.parent / 'v21', info
+
+
+@pytest.fixture(scope='module')
+def dataset_v30(recorded):
+  info = lerobot.export(recorded, recorded.parent / 'v30')
+  return recorded.parent / 'v30', info
 
 
 def _lines(path):
@@ -63,9 +90,13 @@ def test_metadata_follows_lerobot_v2_1(dataset):
   for name in lerobot.INDEX_COLUMNS + ('observation.state', 'action'):
     assert name in info['features']
   assert info['features']['observation.state']['shape'] == [27]
+  joints = ['FFJ10', 'FFJ11', 'FFJ12', 'MFJ20', 'MFJ21', 'MFJ22', 'THJ30',
+            'THJ31', 'THJ32']  # fmt: skip
   assert info['features']['action'] == {
-    'dtype': 'float64', 'shape': [9], 'names': None
+    'dtype': 'float64', 'shape': [9], 'names': joints
   }  # fmt: skip
+  # The agent's vector names each dimension by the observation it is from.
+  assert info['features']['observation.state']['names'][:9] == joints
 
 
 def test_data_files_match_the_features(dataset):
@@ -148,8 +179,147 @@ def test_command_line_export_and_its_errors(dataset, tmp_path):
   )  # fmt: skip
   assert done.returncode == 0, done.stderr
   assert 'wrote' in done.stdout and '2 episodes' in done.stdout
+  assert 'v3.0' in done.stdout  # The default.
+  old = subprocess.run(
+    [*command, f'--lerobot={tmp_path / "old"}', '--lerobot_version=v2.1'],
+    capture_output=True, text=True, timeout=120,
+  )  # fmt: skip
+  assert old.returncode == 0 and 'v2.1' in old.stdout, old.stderr
   again = subprocess.run(
     [*command, f'--lerobot={tmp_path / "again"}'],
     capture_output=True, text=True, timeout=120,
   )  # fmt: skip
   assert again.returncode == 2 and 'exists' in again.stderr
+
+
+def _v30_frames(out, info):
+  """Every data file of a v3.0 dataset, as one table."""
+  return pyarrow.dataset.dataset(out / 'data', format='parquet').to_table()
+
+
+def test_v30_metadata_is_what_lerobot_3_reads(dataset_v30):
+  out, info = dataset_v30
+  assert json.loads((out / 'meta/info.json').read_text()) == info
+  assert set(info) == INFO_KEYS_V30
+  assert info['codebase_version'] == 'v3.0'
+  assert info['fps'] == 20 and isinstance(info['fps'], int)
+  assert info['total_episodes'] == 2 and info['splits'] == {'train': '0:2'}
+  assert info['data_path'] == (
+    'data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet'
+  )
+  for name, feature in info['features'].items():
+    assert '/' not in name  # LeRobot refuses such feature names.
+    assert set(feature) == {'dtype', 'shape', 'names', 'fps'}
+    assert feature['fps'] == info['fps']
+  provenance = json.loads((out / lerobot.ROBEL_DM_META).read_text())
+  assert provenance['columns']['observation.qpos']['unit'] == 'rad'
+
+
+def test_v30_episodes_point_at_their_frames(dataset_v30):
+  out, info = dataset_v30
+  episodes = pq.read_table(out / 'meta/episodes/chunk-000/file-000.parquet')
+  assert set(episodes.column_names) >= EPISODE_KEYS_V30
+  rows = episodes.to_pylist()
+  assert [r['episode_index'] for r in rows] == [0, 1]
+  assert sum(r['length'] for r in rows) == info['total_frames']
+  for row in rows:
+    assert row['tasks'] == ['dclaw/pose_fixed']
+    path = out / info['data_path'].format(
+      chunk_index=row['data/chunk_index'], file_index=row['data/file_index']
+    )
+    table = pq.read_table(path).to_pydict()
+    mine = [
+      i for i, e in zip(table['index'], table['episode_index'], strict=True)
+      if e == row['episode_index']
+    ]  # fmt: skip
+    assert mine == list(range(row['dataset_from_index'],
+                              row['dataset_to_index']))  # fmt: skip
+    assert len(mine) == row['length']
+    for name in info['features']:
+      assert f'stats/{name}/mean' in row, name
+  whole = _v30_frames(out, info)
+  assert sorted(whole.column('index').to_pylist()) == list(
+    range(info['total_frames'])
+  )
+  frame_index = np.array(whole.column('frame_index').to_pylist())
+  gaps = np.diff(np.array(whole.column('timestamp').to_pylist()))
+  within = np.diff(frame_index) == 1
+  assert np.all(np.abs(gaps[within] - 1 / info['fps']) < TIMESTAMP_TOLERANCE)
+
+
+def test_v30_scalars_are_scalars_and_times_are_float64(dataset_v30, recorded):
+  out, info = dataset_v30
+  schema = pq.read_schema(next((out / 'data').glob('*/*.parquet')))
+  for name, feature in info['features'].items():
+    arrow = schema.field(name).type
+    if feature['shape'] == [1]:
+      # LeRobot reads a [1] feature as a scalar: a one-element list breaks it.
+      assert not pa.types.is_list(arrow), name
+    else:
+      assert pa.types.is_list(arrow), name
+  for name in ('timestamp', 'wall_time_elapsed'):
+    assert info['features'][name]['dtype'] == 'float64'
+    assert schema.field(name).type == pa.float64()
+  # Wall-clock times are kept, as an offset from the episode's start (small
+  # enough to survive the float32 LeRobot hands to torch) and that start.
+  episode = recording.read(recorded)[0]
+  whole = _v30_frames(out, info).to_pydict()
+  elapsed = [
+    t
+    for t, e in zip(
+      whole['wall_time_elapsed'], whole['episode_index'], strict=True
+    )
+    if e == 0
+  ]
+  episodes = pq.read_table(out / 'meta/episodes/chunk-000/file-000.parquet')
+  start = episodes.column('wall_time_start').to_pylist()[0]
+  assert start == episode.steps['wall_time'][0]
+  assert elapsed[0] == 0.0 and np.all(np.diff(elapsed) > 0)
+  np.testing.assert_allclose(
+    start + np.array(elapsed), episode.steps['wall_time'][:-1], rtol=0,
+    atol=1e-6,
+  )  # fmt: skip
+  assert len(set(np.float32(elapsed))) == len(elapsed)
+
+
+def test_v30_tasks_and_stats(dataset_v30):
+  out, info = dataset_v30
+  tasks = pq.read_table(out / 'meta/tasks.parquet')
+  # pandas (as LeRobot reads it) takes the task text as the frame's index.
+  pandas_meta = json.loads(tasks.schema.metadata[b'pandas'])
+  [index] = pandas_meta['index_columns']
+  assert tasks.column(index).to_pylist() == ['dclaw/pose_fixed']
+  assert tasks.column('task_index').to_pylist() == [0]
+  stats = json.loads((out / 'meta/stats.json').read_text())
+  assert set(stats) == set(info['features'])
+  actions = np.array(_v30_frames(out, info).column('action').to_pylist())
+  np.testing.assert_allclose(stats['action']['mean'], actions.mean(axis=0))
+  np.testing.assert_allclose(stats['action']['max'], actions.max(axis=0))
+  assert stats['action']['count'] == [info['total_frames']]
+
+
+def test_v30_frames_are_observation_then_action_taken(dataset_v30):
+  out, info = dataset_v30
+  whole = {
+    k: np.array(v) for k, v in _v30_frames(out, info).to_pydict().items()
+  }
+  env = suite.load('dclaw', 'pose_fixed', seed=7)
+  for episode_index in range(info['total_episodes']):
+    rows = np.flatnonzero(whole['episode_index'] == episode_index)
+    rows = rows[np.argsort(whole['frame_index'][rows])]
+    timestep = env.reset()
+    for row in rows:
+      np.testing.assert_array_equal(
+        whole['observation.state'][row],
+        env.task.flatten_observation(timestep.observation),
+      )
+      timestep = env.step(whole['action'][row])
+      assert whole['next.reward'][row] == timestep.reward
+    assert timestep.last()
+  env.close()
+
+
+def test_export_refuses_an_unknown_version(recorded, tmp_path):
+  with pytest.raises(ValueError, match='v3.0 or v2.1'):
+    lerobot.export(recorded, tmp_path / 'x', version='v4')
+  assert not (tmp_path / 'x').exists()

@@ -1,7 +1,7 @@
 """Lists a recording, or exports it as a LeRobotDataset.
 
 python -m robel_dm.recording DIR
-python -m robel_dm.recording DIR --lerobot=OUT
+python -m robel_dm.recording DIR --lerobot=OUT [--lerobot_version=v2.1]
 """
 
 import argparse
@@ -40,12 +40,21 @@ def main(argv: list[str]) -> int:
   parser.add_argument(
     '--lerobot',
     metavar='OUT',
-    help='write its complete episodes as a LeRobotDataset v2.1 here',
+    help='write its complete episodes as a LeRobotDataset here',
+  )
+  parser.add_argument(
+    '--lerobot_version',
+    choices=lerobot.VERSIONS,
+    default=lerobot.VERSIONS[0],
+    help='the LeRobotDataset codebase version: v3.0 (LeRobot 0.4 and '
+    'later) or v2.1 (LeRobot 0.3)',
   )
   arguments = parser.parse_args(argv[1:])
   try:
     if arguments.lerobot:
-      info = lerobot.export(arguments.directory, arguments.lerobot)
+      info = lerobot.export(
+        arguments.directory, arguments.lerobot, arguments.lerobot_version
+      )
       print(
         f'wrote {arguments.lerobot}: {info["total_episodes"]} episodes, '
         f'{info["total_frames"]} frames (LeRobotDataset '
