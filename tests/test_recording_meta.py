@@ -1,9 +1,12 @@
 """What a recording says about itself: replay refuses another seed, task or
 task_kwargs than the recording's, and every Parquet file describes its own
-columns (units, shapes, dimension names) without its directory."""
+columns (units, shapes, dimension names) without its directory; one
+recorder at a time writes a directory."""
 
 import json
 import shutil
+import subprocess
+import sys
 
 from absl import flags
 import numpy as np
@@ -221,3 +224,29 @@ def test_a_replay_is_not_split_over_workers(tmp_path):
     evaluate.evaluate(
       'dclaw', 'pose_fixed', 2, policy=f'replay:{tmp_path}', workers=2
     )
+
+
+def test_one_recorder_at_a_time_per_directory(tmp_path):
+  # Two recorders would number their episodes alike and overwrite files.
+  first = recording.Recorder(suite.load('dclaw', 'pose_fixed'), tmp_path)
+  env = suite.load('dclaw', 'pose_fixed')
+  with pytest.raises(recording.RecordingError, match='another process'):
+    recording.Recorder(env, tmp_path)
+  first.reset()
+  first.close()
+  second = recording.Recorder(env, tmp_path)  # Free once the first closed.
+  second.close()
+
+
+def test_a_killed_recorder_leaves_the_directory_free(tmp_path):
+  script = (
+    'import os, signal\n'
+    'from robel_dm import recording, suite\n'
+    'env = suite.load("dclaw", "pose_fixed")\n'
+    f'env = recording.Recorder(env, {str(tmp_path)!r})\n'
+    'env.reset()\n'
+    'os.kill(os.getpid(), signal.SIGKILL)\n'
+  )
+  done = subprocess.run([sys.executable, '-c', script], timeout=120)
+  assert done.returncode == -9
+  recording.Recorder(suite.load('dclaw', 'pose_fixed'), tmp_path).close()

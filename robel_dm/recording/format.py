@@ -14,6 +14,7 @@ these in order), and what `read()` makes of it:
 """
 
 import dataclasses
+import fcntl
 import json
 import os
 import pathlib
@@ -21,7 +22,7 @@ import re
 import shutil
 import threading
 import time
-from typing import Any
+from typing import IO, Any
 import warnings
 import weakref
 
@@ -144,6 +145,39 @@ def prepare(directory: pathlib.Path) -> None:
       f'{directory}: only {free / 2**20:.0f} MiB free; a recording needs '
       f'{MIN_FREE_BYTES / 2**20:.0f} MiB'
     )
+
+
+LOCK = 'meta/.lock'
+
+
+def lock(directory: pathlib.Path) -> IO[str]:
+  """Takes the directory's recording lock: one recorder at a time, since
+  two would number their episodes alike. The operating system releases it
+  when the file closes or the process ends, however it ends.
+
+  Returns:
+    The lock file; close it to release the lock.
+
+  Raises:
+    RecordingError: if another process records into the directory.
+  """
+  path = directory / LOCK
+  handle = open(path, 'a+')  # noqa: SIM115 (held until the recorder closes)
+  try:
+    fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+  except OSError:
+    handle.seek(0)
+    holder = handle.read().strip() or 'unknown'
+    handle.close()
+    raise RecordingError(
+      f'{directory} is being recorded by another process (pid {holder}); '
+      'record into another directory, or wait for it to finish'
+    ) from None
+  handle.seek(0)
+  handle.truncate()
+  handle.write(str(os.getpid()))
+  handle.flush()
+  return handle
 
 
 def _episode_files(

@@ -238,7 +238,12 @@ def export(
   directory, output = pathlib.Path(directory), pathlib.Path(output)
   if output.exists():
     raise format_lib.RecordingError(f'{output} exists; export writes a new one')
-  info = json.loads((directory / format_lib.INFO).read_text())
+  try:
+    info = json.loads((directory / format_lib.INFO).read_text())
+  except (OSError, ValueError) as error:
+    raise format_lib.RecordingError(
+      f'{directory} is not a readable recording ({format_lib.INFO}: {error})'
+    ) from error
   episodes = _episodes(directory)
   keys = info.get('observation_keys')
   description = _description(directory, episodes[0].metadata['episode_index'])

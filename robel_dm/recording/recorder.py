@@ -233,7 +233,8 @@ class Recorder(dm_env.Environment):
 
     Raises:
       RecordingError: if the directory is not writable, the disk is full,
-        or it holds a recording of another task or observation keys (the
+        another process records into it, or it holds a recording of
+        another task or observation keys (the
         session's domain, task or task_kwargs, where both name them);
         raised before the robot moves and before anything is written.
     """
@@ -253,11 +254,13 @@ class Recorder(dm_env.Environment):
     }
     _check_same_task(self._directory, info)  # Before anything is written.
     format_lib.prepare(self._directory)
+    self._lock = format_lib.lock(self._directory)
     try:
       format_lib.write_atomically(
         self._directory / format_lib.INFO, json.dumps(info, indent=1)
       )
     except (OSError, TypeError, ValueError) as error:
+      self._lock.close()
       raise format_lib.RecordingError(
         f'cannot write {self._directory}: {error}'
       ) from error
@@ -328,6 +331,7 @@ class Recorder(dm_env.Environment):
     try:
       self._finish(complete=False)
     finally:
+      self._lock.close()
       self._env.close()
 
   # --- Recording -------------------------------------------------------------
