@@ -5,6 +5,9 @@ import warnings
 
 __version__ = '0.1.0'
 
+# Before anything imports dm_control, which picks its OpenGL backend once.
+from robel_dm import gl_backend  # noqa: E402, F401
+
 # The Gymnasium ids (see robel_dm.learning.gym) must be registered whenever both
 # robel_dm and gymnasium are imported, in either order, so that
 # `gymnasium.make('robel_dm:robel_dm/DClawTurnFixed-v0')` works even when

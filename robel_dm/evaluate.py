@@ -9,10 +9,11 @@ episode's last step), mean return, mean score, mean safety violations per
 episode and the control steps per second.
 """
 
-import json
+from collections.abc import Sequence
 import math
 import os
 import sys
+import time
 from typing import Any
 
 from absl import app, flags, logging
@@ -21,6 +22,7 @@ import tqdm
 
 from robel_dm import (
   cli_checks,
+  gl_backend,
   parallel,
   policies,
   provenance,
@@ -29,41 +31,13 @@ from robel_dm import (
   robots,
   rollout,
   suite,
+  task_args,
   video,
 )
 from robel_dm.tasks import base
 
-
-def parse_task_kwargs(text: str) -> dict[str, Any]:
-  """Parses --task_kwargs: a JSON object or comma-separated key=value pairs.
-
-  Values of key=value pairs are read as JSON where possible (numbers, true,
-  null, lists), otherwise as strings.
-
-  Raises:
-    ValueError: if the text is neither form.
-  """
-  text = text.strip()
-  if not text:
-    return {}
-  if text.startswith('{'):
-    try:
-      parsed = json.loads(text)
-    except json.JSONDecodeError as error:
-      raise ValueError(f'--task_kwargs is not valid JSON: {error}') from error
-    if not isinstance(parsed, dict):
-      raise ValueError('--task_kwargs JSON must be an object')
-    return parsed
-  kwargs = {}
-  for pair in text.split(','):
-    key, sep, value = pair.partition('=')
-    if not sep or not key.strip():
-      raise ValueError(f'--task_kwargs entry {pair!r} is not key=value')
-    try:
-      kwargs[key.strip()] = json.loads(value)
-    except json.JSONDecodeError:
-      kwargs[key.strip()] = value.strip()
-  return kwargs
+# A frame slower than this is software rendering: the note says so.
+SLOW_FRAME_SECONDS = 0.05
 
 
 def summarize(
@@ -74,9 +48,12 @@ def summarize(
   def values(key):
     return [r[key] for r in records]
 
+  requested = head.get('episodes_requested', len(records))
   return {
     **head,
     'episodes': len(records),
+    # False while a run is under way, and in the output of a run cut short.
+    'complete': len(records) >= requested,
     'success_rate': float(np.mean(values('success'))) if records else math.nan,
     'mean_return': float(np.mean(values('return'))) if records else math.nan,
     'mean_score': float(np.mean(values('mean_score'))) if records else math.nan,
@@ -138,6 +115,8 @@ def evaluate(
   record: str | None = None,
   dynamics: str | None = None,
   allow_other_seed: bool = False,
+  video_episodes: Sequence[int] | None = None,
+  log=None,
 ) -> dict[str, Any]:
   """Runs `episodes` episodes and returns the metrics.
 
@@ -171,6 +150,10 @@ def evaluate(
       `suite.load` and docs/sysid.md).
     allow_other_seed: replay a recording ('replay:DIR') from another seed
       than its own (refused otherwise, before anything is built).
+    video_episodes: with `video_dir`, film only these episodes (indices
+      from 0); None films every one.
+    log: called with a line to show the user (how videos are rendered,
+      and how long they will take); None: no such lines.
 
   Returns:
     A JSON-serializable dict of per-episode records, summary metrics,
@@ -182,6 +165,15 @@ def evaluate(
   """
   if episodes < 1:
     raise ValueError(f'episodes must be >= 1, got {episodes}')
+  if video_episodes is not None:
+    outside = sorted(set(video_episodes) - set(range(episodes)))
+    if outside:
+      raise ValueError(
+        f'video episodes {outside} are not among the {episodes} episodes '
+        f'(0..{episodes - 1})'
+      )
+    if video_dir is None:
+      raise ValueError('video episodes need a video folder (--video=DIR)')
   if workers < 1:
     raise ValueError(f'workers must be >= 1, got {workers}')
   replay = isinstance(policy, str) and policy.startswith(policies.REPLAY)
@@ -240,6 +232,7 @@ def evaluate(
     'seed': seed,
     'device_path': robot and robot.device_path,
     'dynamics': dynamics,
+    'episodes_requested': episodes,
     'provenance': provenance.describe(),
   }
   records, total_steps, step_seconds = [], 0, 0.0
@@ -270,14 +263,17 @@ def evaluate(
         if on_episode is not None:
           on_episode(results())
       return results()
+    filmed = set(range(episodes) if video_episodes is None else video_episodes)
     if video_dir is not None:
       camera = camera or robots.ROBOTS[domain].default_camera
       video.check_camera(env, camera)
       os.makedirs(video_dir, exist_ok=True)
+      if log is not None:
+        log(_rendering_note(env, camera, len(filmed)))
     for episode in range(episodes):
       episode_seed = None if seed is None else seed + episode
       writer = on_step = None
-      if video_dir is not None:
+      if video_dir is not None and episode in filmed:
         path = os.path.join(video_dir, f'{domain}_{task}_{episode:04d}.mp4')
         writer = video.VideoWriter(path, fps=1 / env.control_timestep())
 
@@ -316,29 +312,22 @@ def evaluate(
   return results()
 
 
-def select_tasks(domain: str, task: str) -> list[tuple[str, str]]:
-  """The (domain, task) pairs that --domain and --task name ('all' for
-  every domain or every task of the domain(s)).
-
-  Raises:
-    ValueError: for unknown names (with the suite's suggestions).
-  """
-  domains = list(suite.TASKS_BY_DOMAIN) if domain == 'all' else [domain]
-  selected = []
-  for name in domains:
-    if name not in suite.TASKS_BY_DOMAIN:
-      suite.load(name, task)  # Raises, naming the known domains.
-    tasks = suite.TASKS_BY_DOMAIN[name]
-    if task == 'all':
-      selected += [(name, t) for t in tasks]
-    elif task in tasks or domain != 'all':
-      selected.append((name, task))
-  if not selected:
-    raise ValueError(f'no domain has a task {task!r}')
-  for name, task_name in selected:
-    if task_name not in suite.TASKS_BY_DOMAIN[name]:
-      suite.load(name, task_name)  # Raises with the suggestions.
-  return selected
+def _rendering_note(env, camera: str, videos: int) -> str:
+  """How videos are rendered here and what they will cost: one line."""
+  video.render(env, camera)  # The first frame also sets the renderer up.
+  start = time.perf_counter()
+  video.render(env, camera)
+  seconds = time.perf_counter() - start
+  steps = env.task.episode_steps
+  minutes = seconds * (steps + 1) * videos / 60
+  note = (
+    f'videos: camera {camera}, {gl_backend.describe()}; {seconds:.2f} s a '
+    f'frame here, about {minutes:.1f} min for {videos} episode(s) of '
+    f'{steps} steps'
+  )
+  if seconds > SLOW_FRAME_SECONDS:
+    note += ' (software rendering: --video_episodes films fewer)'
+  return note
 
 
 def _define_flags() -> None:
@@ -378,6 +367,13 @@ def _define_flags() -> None:
     'camera',
     None,
     "The videos' camera (default: dclaw front, dkitty overview).",
+  )
+  flags.DEFINE_list(
+    'video_episodes',
+    None,
+    'With --video: film only these episodes (indices from 0, e.g. 0,5); '
+    'default: every episode. Rendering without a GPU takes about 0.4 s a '
+    'frame.',
   )
   flags.DEFINE_integer('episodes', 10, 'Number of episodes.', lower_bound=1)
   flags.DEFINE_integer('seed', 0, 'Seed of the environment and policy.')
@@ -440,6 +436,26 @@ def _define_flags() -> None:
 FLAGS = flags.FLAGS
 
 
+def _video_episodes(values: list[str] | None) -> list[int] | None:
+  """--video_episodes as indices (checked against --episodes and --video)."""
+  if values is None:
+    return None
+  try:
+    indices = [int(v) for v in values]
+  except ValueError:
+    raise ValueError(
+      f'--video_episodes={",".join(values)}: give episode indices, e.g. 0,5'
+    ) from None
+  if not FLAGS.video:
+    raise ValueError('--video_episodes needs --video=DIR')
+  if any(i < 0 or i >= FLAGS.episodes for i in indices):
+    raise ValueError(
+      f'--video_episodes={",".join(values)}: indices run from 0 to '
+      f'{FLAGS.episodes - 1} (--episodes={FLAGS.episodes})'
+    )
+  return indices
+
+
 def _list_tasks() -> str:
   return '\n'.join(
     f'{domain:<7} {", ".join(tasks)}'
@@ -455,9 +471,20 @@ def main(argv):
     return 0
   finished: list[dict[str, Any]] = []
   try:
-    task_kwargs = parse_task_kwargs(FLAGS.task_kwargs)
-    tasks = select_tasks(FLAGS.domain, FLAGS.task)
+    task_kwargs = task_args.parse_task_kwargs(FLAGS.task_kwargs)
+    tasks = task_args.select_tasks(FLAGS.domain, FLAGS.task)
+    video_episodes = _video_episodes(FLAGS.video_episodes)
     cli_checks.check_output(FLAGS.output)
+    if len(tasks) > 1:  # A sweep runs the tasks the policy can run.
+      reasons = {
+        t: task_args.unavailable(FLAGS.policy, *t, task_kwargs) for t in tasks
+      }
+      for (domain, task), reason in reasons.items():
+        if reason:
+          print(f'skipped {domain}/{task}: {reason}', file=sys.stderr)
+      tasks = [t for t in tasks if not reasons[t]]
+      if not tasks:
+        raise ValueError(f'no selected task can run policy {FLAGS.policy!r}')
     checked = {  # Every task's policy file, before any runs.
       (domain, task): policies.check_file(
         FLAGS.policy, domain, task, task_kwargs, FLAGS.allow_other_variant
@@ -471,8 +498,10 @@ def main(argv):
     )  # fmt: skip
 
     saved = [0]  # Episodes in --output.
+    latest = []  # The results of the task under way, as last saved.
 
     def save(partial):
+      latest[:] = [partial]
       # Saved, then printed: a printed row is in --output whenever Ctrl-C
       # lands (a failed write stops the run, unprinted).
       if FLAGS.output:
@@ -508,8 +537,11 @@ def main(argv):
         record=FLAGS.record,
         dynamics=FLAGS.dynamics,
         allow_other_seed=FLAGS.allow_other_seed,
+        video_episodes=video_episodes,
+        log=lambda line: print(line, file=sys.stderr, flush=True),
       )
       finished.append(results)
+      latest.clear()
       print(result_table.format_summary(results), flush=True)
     progress.close()
   except (ValueError, RuntimeError) as error:
@@ -517,8 +549,20 @@ def main(argv):
     return 2
   except KeyboardInterrupt:
     # A robot's motors were released on the way out (see hardware.shutdown);
-    # every finished episode is in --output already.
+    # every finished episode is in --output already: mark it cut short.
     print('interrupted', file=sys.stderr)
+    if FLAGS.output and (finished or latest):
+      cut = [dict(r, interrupted=True) for r in latest] or [
+        dict(finished.pop(), interrupted=True)
+      ]
+      everything = [*finished, *cut]
+      cli_checks.save(
+        FLAGS.output, everything if sweep else everything[-1], saved[0]
+      )
+      print(
+        f'{FLAGS.output} holds {saved[0]} episode(s), marked interrupted',
+        file=sys.stderr,
+      )
     return 130
   if FLAGS.output:
     print(f'wrote {FLAGS.output}')

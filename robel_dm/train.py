@@ -119,7 +119,7 @@ def main(argv):
   if not FLAGS.output_dir:
     raise app.UsageError('--output_dir is required')
   os.environ.setdefault('MUJOCO_GL', 'egl')
-  from robel_dm import evaluate  # noqa: PLC0415
+  from robel_dm import evaluate, task_args  # noqa: PLC0415
 
   try:
     from robel_dm.learning import train as learning  # noqa: PLC0415
@@ -127,7 +127,7 @@ def main(argv):
     config = learning.RunConfig(
       domain=FLAGS.domain,
       task=FLAGS.task,
-      task_kwargs=evaluate.parse_task_kwargs(FLAGS.task_kwargs),
+      task_kwargs=task_args.parse_task_kwargs(FLAGS.task_kwargs),
       algo=FLAGS.algo,
       seed=FLAGS.seed,
       steps=FLAGS.steps,

@@ -11,7 +11,7 @@ import child_signals
 import numpy as np
 import pytest
 
-from robel_dm import evaluate, policies, suite
+from robel_dm import assets, evaluate, policies, suite, task_args
 
 
 @pytest.mark.parametrize('task', ['pose_fixed', 'pose_random'])
@@ -108,13 +108,13 @@ def test_unknown_or_unavailable_policies_raise():
   ],
 )  # fmt: skip
 def test_parse_task_kwargs(text, expected):
-  assert evaluate.parse_task_kwargs(text) == expected
+  assert task_args.parse_task_kwargs(text) == expected
 
 
 @pytest.mark.parametrize('text', ['{"valve": ', '[1, 2]', 'valve', '=x'])
 def test_parse_task_kwargs_rejects_malformed_text(text):
   with pytest.raises(ValueError, match='task_kwargs'):
-    evaluate.parse_task_kwargs(text)
+    task_args.parse_task_kwargs(text)
 
 
 def _run_cli(*flags, cwd):
@@ -144,6 +144,8 @@ def test_cli_prints_a_table_and_writes_json(tmp_path):
   assert results['task_kwargs'] == {'valve': 'valve4'}
   assert set(results['safety']) == {'position', 'velocity', 'current'}
   assert results['episodes'] == len(results['records']) == 2
+  assert results['complete'] and results['episodes_requested'] == 2
+  assert 'interrupted' not in results
 
 
 def test_cli_evaluates_a_dkitty_task(tmp_path):
@@ -236,6 +238,74 @@ def test_ctrl_c_mid_sweep_keeps_every_finished_episode(tmp_path):
   episodes = sum(r['episodes'] for r in saved)
   assert 1 <= episodes < 20 * 9
   assert all(len(r['records']) == r['episodes'] for r in saved)
+  # The file says the run was cut short, and where.
+  assert saved[-1]['interrupted'] is True
+  assert all(r['complete'] for r in saved[:-1])
+  assert not any(r.get('interrupted') for r in saved[:-1])
+  assert 'marked interrupted' in errors
+
+
+def test_a_reference_sweep_skips_tasks_without_a_controller(tmp_path):
+  output = tmp_path / 'sweep.json'
+  result = _run_cli(
+    '--domain=dkitty', '--task=all', '--policy=reference', '--episodes=1',
+    f'--output={output}', cwd=tmp_path,
+  )  # fmt: skip
+  assert result.returncode == 0, result.stderr
+  assert 'skipped dkitty/walk_fixed: no reference controller' in result.stderr
+  ran = [r['task'] for r in json.loads(output.read_text())]
+  assert ran == ['stand_fixed', 'stand_random', 'stand_random_dynamics']
+
+
+def test_a_baseline_sweep_skips_tasks_without_a_shipped_policy(tmp_path):
+  output = tmp_path / 'sweep.json'
+  result = _run_cli(
+    '--domain=dkitty', '--task=all', '--policy=baseline', '--episodes=1',
+    f'--output={output}', cwd=tmp_path,
+  )  # fmt: skip
+  assert result.returncode == 0, result.stderr
+  shipped = {
+    p.stem.split('_', 1)[1] for p in assets.baselines_dir().glob('dkitty_*')
+  }
+  ran = {r['task'] for r in json.loads(output.read_text())}
+  assert ran == shipped
+  for task in set(suite.TASKS_BY_DOMAIN['dkitty']) - shipped:
+    assert f'skipped dkitty/{task}: no shipped baseline' in result.stderr
+
+
+def test_only_the_chosen_episodes_are_filmed(tmp_path, monkeypatch):
+  frames = []
+  monkeypatch.setattr(
+    evaluate.video, 'render',
+    lambda env, camera, size=(4, 4): frames.append(camera) or np.zeros(
+      (240, 320, 3), np.uint8),
+  )  # fmt: skip
+  lines = []
+  results = evaluate.evaluate(
+    'dclaw', 'pose_fixed', 3, policy='zero', video_dir=str(tmp_path),
+    video_episodes=[1], log=lines.append,
+  )  # fmt: skip
+  assert sorted(p.name for p in tmp_path.iterdir()) == [
+    'dclaw_pose_fixed_0001.mp4'
+  ]
+  assert [('video' in r) for r in results['records']] == [False, True, False]
+  assert lines and lines[0].startswith('videos: camera ')
+  assert 's a frame here' in lines[0] and 'MUJOCO_GL=' in lines[0]
+
+
+@pytest.mark.parametrize(
+  'flags, message',
+  [
+    (['--video_episodes=0'], '--video_episodes needs --video=DIR'),
+    (['--video=v', '--video_episodes=3', '--episodes=2'], 'from 0 to 1'),
+    (['--video=v', '--video_episodes=a'], 'give episode indices'),
+  ],
+)
+def test_bad_video_episodes_are_refused_in_one_line(flags, message, tmp_path):
+  result = _run_cli(*flags, cwd=tmp_path)
+  assert result.returncode == 2
+  assert message in result.stderr and 'Traceback' not in result.stderr
+  assert not (tmp_path / 'v').exists()
 
 
 @pytest.mark.parametrize('policy', ['random', 'zero'])

@@ -6,8 +6,9 @@ r"""Opens dm_control's interactive viewer on a robel_dm task.
 The viewer draws into a window, so it needs a display and MuJoCo's `glfw`
 OpenGL backend: this command selects `glfw` when MUJOCO_GL is unset, and
 explains what to change when MUJOCO_GL asks for offscreen rendering (`egl`,
-`osmesa`) or there is no display. Space pauses, backspace restarts the
-episode; see dm_control's viewer documentation for the rest.
+`osmesa`) or there is no display. The viewer opens paused: Space runs and
+pauses, Backspace restarts the episode, the mouse wheel zooms; see
+dm_control's viewer documentation for the rest.
 """
 
 import os
@@ -16,13 +17,17 @@ import sys
 # Before dm_control is imported: it picks its OpenGL backend on import. An
 # offscreen PyOpenGL platform inherited from a parent process (dm_control
 # sets one for egl and osmesa) would break the window's context.
+from robel_dm import gl_backend  # noqa: E402 (imports no dm_control)
+
+if gl_backend.CHOSEN:  # robel_dm's offscreen pick: a window needs glfw.
+  os.environ['MUJOCO_GL'] = 'glfw'
 os.environ.setdefault('MUJOCO_GL', 'glfw')
 if os.environ['MUJOCO_GL'] == 'glfw':
   os.environ.pop('PYOPENGL_PLATFORM', None)
 
 from absl import app, flags  # noqa: E402
 
-from robel_dm import evaluate, policies, suite  # noqa: E402
+from robel_dm import policies, suite, task_args  # noqa: E402
 
 _OFFSCREEN_BACKENDS = ('egl', 'osmesa')
 
@@ -65,7 +70,7 @@ def main(argv):
     raise app.UsageError(f'unexpected arguments: {argv[1:]}')
   try:
     check_display()
-    task_kwargs = evaluate.parse_task_kwargs(FLAGS.task_kwargs)
+    task_kwargs = task_args.parse_task_kwargs(FLAGS.task_kwargs)
     env = suite.load(
       FLAGS.domain, FLAGS.task, seed=FLAGS.seed, task_kwargs=task_kwargs
     )
