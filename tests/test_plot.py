@@ -24,10 +24,41 @@ def result_files(tmp_path_factory):
   return paths
 
 
-def test_intervals_come_from_the_episode_records():
-  mean, half = plot.mean_and_interval(np.array([0.0, 1.0, 1.0, 0.0]))
-  assert mean == 0.5
-  assert half == pytest.approx(1.96 * np.std([0, 1, 1, 0], ddof=1) / 2)
+def test_a_success_rate_gets_wilsons_interval():
+  rate, low, high = plot.interval('success', np.array([1.0, 0, 0, 0]))
+  assert rate == 0.25
+  assert (low, high) == pytest.approx((0.0456, 0.6994), abs=1e-3)
+  rate, low, high = plot.interval('success', np.ones(4))
+  assert rate == high == 1.0 and low < 0.6  # Not 1.00..1.00.
+
+
+def test_a_count_interval_never_goes_below_zero():
+  counts = np.array([0.0, 0, 0, 5])
+  # The normal interval the plot used to draw: below zero.
+  assert counts.mean() - 1.96 * counts.std(ddof=1) / 2 < 0
+  mean, low, high = plot.interval('position', counts)
+  assert mean == 1.25 and 0 <= low <= mean <= high <= 5
+  # The same files give the same figure.
+  assert plot.interval('position', counts) == (mean, low, high)
+
+
+def test_a_sweep_gets_a_row_of_panels_per_robot():
+  def result(domain, task):
+    return {'domain': domain, 'task': task, 'records': [
+      {'success': True, 'mean_score': 0.5,
+       'safety': {'position': 1, 'velocity': 0, 'current': 0}}]}  # fmt: skip
+
+  sweep = [result('dclaw', t) for t in ('pose_fixed', 'turn_fixed')]
+  sweep += [result('dkitty', t) for t in ('stand_fixed', 'walk_fixed')]
+  figure = plot.draw([sweep, sweep[:1]], ['a', 'b'])
+  axes = figure.axes
+  assert len(axes) == 2 * len(plot.PANELS)
+  rows = [[t.get_text() for t in a.get_yticklabels()] for a in axes[::4]]
+  assert rows == [['pose_fixed', 'turn_fixed'], ['stand_fixed', 'walk_fixed']]
+  assert axes[0].get_title().startswith('dclaw')
+  assert axes[4].get_title().startswith('dkitty')
+  # The legend is the figure's, outside the panels.
+  assert not any(a.get_legend() for a in axes) and figure.legends
 
 
 def test_plot_command_writes_the_figure(result_files, tmp_path):
