@@ -34,7 +34,7 @@ import gymnasium
 import numpy as np
 
 from robel_dm import evaluate, policies, suite
-from robel_dm.learning import agents, curves, demos, replay
+from robel_dm.learning import agents, curves, demos, replay, telemetry
 
 CHECKPOINT = 'checkpoint.zip'
 REPLAY_BUFFER = 'replay_buffer.pkl'
@@ -248,6 +248,13 @@ class Run:
   def __init__(self, output: pathlib.Path, config: RunConfig, log):
     self.output, self.config, self.log = output, config, log
     self.log_path = output / EVAL_LOG
+    self.telemetry = telemetry.Telemetry(
+      output,
+      f'{config.domain}/{config.task} {config.algo} seed {config.seed}',
+      config.to_json(),
+      config.steps,
+      log,
+    )
     self.history: list[dict] = []
     self.best: dict | None = None
     self._wall = self._cpu = self._evaluating = 0.0
@@ -313,6 +320,7 @@ class Run:
     self.history.append(row)
     with open(self.log_path, 'a') as file:
       file.write(json.dumps(row) + '\n')
+    self.telemetry.evaluation(row)
     config = self.config
     self.log(
       f'{config.domain}/{config.task} {config.algo} seed {config.seed}: '
@@ -427,10 +435,13 @@ def train(
     run.log_path.write_text('')
   (output / CONFIG).write_text(json.dumps(config.to_json(), indent=1))
   (output / METADATA).write_text(json.dumps(metadata, indent=1))
-  if config.agent.kind == agents.IMITATION:
-    _clone(config, run, data, metadata)
-  else:
-    _reinforce(config, run, data, metadata, resume)
+  try:
+    if config.agent.kind == agents.IMITATION:
+      _clone(config, run, data, metadata)
+    else:
+      _reinforce(config, run, data, metadata, resume)
+  finally:
+    run.telemetry.close()
   curves.plot_run(
     run.log_path,
     output / CURVE,
@@ -530,9 +541,12 @@ def _reinforce(config: RunConfig, run: Run, data, metadata, resume) -> None:
         raise ValueError('demonstrations and recordings need --num_envs=1')
       # The buffer's size (run steps + these) keeps them for the run.
       replay.store(model.replay_buffer, data)
-  # SB3's own logger would make a folder in /tmp per learn() call; the
-  # evaluation log is the record of the run.
-  model.set_logger(Logger(folder=None, output_formats=[]))
+  # SB3's own logger would make a folder in /tmp per learn() call; its
+  # values go to the run's TensorBoard events and progress lines instead.
+  output_format = telemetry.agent_log_output(
+    run.telemetry, lambda: model.num_timesteps
+  )
+  model.set_logger(Logger(folder=None, output_formats=[output_format]))
   rollout = _rollout(agent, model, config)
   eval_every = _round_up(config.eval_every, rollout)
   steps = _round_up(config.steps, rollout)
