@@ -366,7 +366,7 @@ def _define_flags() -> None:
   flags.DEFINE_string(
     'camera',
     None,
-    "The videos' camera (default: dclaw front, dkitty overview).",
+    "The videos' camera (default: dclaw front, dkitty follow).",
   )
   flags.DEFINE_list(
     'video_episodes',

@@ -55,7 +55,7 @@ DKITTY = Robot(
   name='dkitty',
   title="D'Kitty",
   gym_prefix='DKitty',
-  default_camera='overview',
+  default_camera='follow',
   standalone_scene='stand_fixed',
 )
 ROBOTS: dict[str, Robot] = {robot.name: robot for robot in (DCLAW, DKITTY)}
