@@ -103,7 +103,8 @@ class Run:
 def runs() -> list[Run]:
   """Every run of the table, in the order they are worth running: the
   default agent on the Fixed tasks (every seed), then on the Random ones,
-  then on RandomDynamics and the 4-prong valve, then the other agents."""
+  then on RandomDynamics and the 4-prong valve, then the other agents,
+  then the agents tried `also` on tasks the default agent left unsolved."""
   tiers = {'fixed': [], 'random': [], 'other': []}
   for key in PLAN['tasks']:
     domain, task = key.split('/')
@@ -125,6 +126,12 @@ def runs() -> list[Run]:
       domain, task = key.split('/')
       for algo in PLAN['agents']:
         if algo != PLAN['default_agent']:
+          table.append(Run(domain, task, algo, seed))
+  for key, algos in PLAN.get('also', {}).items():
+    domain, task = key.split('/')
+    for seed in PLAN['seeds']:
+      for algo in algos:
+        if key not in PLAN['every_agent'] or algo not in PLAN['agents']:
           table.append(Run(domain, task, algo, seed))
   return table
 
