@@ -195,14 +195,20 @@ def test_cli_lists_the_tasks(tmp_path):
   assert 'dclaw' in result.stdout and 'walk_random_dynamics' in result.stdout
 
 
-def test_cli_sweeps_every_task(tmp_path):
+def _sweep(tmp_path, domain, policy):
+  """A one-episode sweep of every task of `domain`: the finished process
+  and the results it wrote."""
   output = tmp_path / 'sweep.json'
   result = _run_cli(
-    '--domain=all', '--task=all', '--episodes=1', '--policy=zero',
+    f'--domain={domain}', '--task=all', '--episodes=1', f'--policy={policy}',
     f'--output={output}', cwd=tmp_path,
   )  # fmt: skip
   assert result.returncode == 0, result.stderr
-  results = json.loads(output.read_text())
+  return result, json.loads(output.read_text())
+
+
+def test_cli_sweeps_every_task(tmp_path):
+  result, results = _sweep(tmp_path, 'all', 'zero')
   assert [(r['domain'], r['task']) for r in results] == list(suite.ALL_TASKS)
   assert all(r['episodes'] == 1 for r in results)
   # Each task's rows are printed as its episodes end.
@@ -246,28 +252,18 @@ def test_ctrl_c_mid_sweep_keeps_every_finished_episode(tmp_path):
 
 
 def test_a_reference_sweep_skips_tasks_without_a_controller(tmp_path):
-  output = tmp_path / 'sweep.json'
-  result = _run_cli(
-    '--domain=dkitty', '--task=all', '--policy=reference', '--episodes=1',
-    f'--output={output}', cwd=tmp_path,
-  )  # fmt: skip
-  assert result.returncode == 0, result.stderr
+  result, results = _sweep(tmp_path, 'dkitty', 'reference')
   assert 'skipped dkitty/walk_fixed: no reference controller' in result.stderr
-  ran = [r['task'] for r in json.loads(output.read_text())]
+  ran = [r['task'] for r in results]
   assert ran == ['stand_fixed', 'stand_random', 'stand_random_dynamics']
 
 
 def test_a_baseline_sweep_skips_tasks_without_a_shipped_policy(tmp_path):
-  output = tmp_path / 'sweep.json'
-  result = _run_cli(
-    '--domain=dkitty', '--task=all', '--policy=baseline', '--episodes=1',
-    f'--output={output}', cwd=tmp_path,
-  )  # fmt: skip
-  assert result.returncode == 0, result.stderr
+  result, results = _sweep(tmp_path, 'dkitty', 'baseline')
   shipped = {
     p.stem.split('_', 1)[1] for p in assets.baselines_dir().glob('dkitty_*')
   }
-  ran = {r['task'] for r in json.loads(output.read_text())}
+  ran = {r['task'] for r in results}
   assert ran == shipped
   for task in set(suite.TASKS_BY_DOMAIN['dkitty']) - shipped:
     assert f'skipped dkitty/{task}: no shipped baseline' in result.stderr
