@@ -284,6 +284,11 @@ def test_every_write_the_guarantee_needs_is_fsynced(tmp_path, monkeypatch):
   assert f'{chunk}/episode_000000.parquet.partial' in synced
   # The new stream, the rename, the unlink.
   assert synced.count(chunk) == 3
+  # The new directories' entries: data/chunk-000, data and meta, the
+  # recording directory itself.
+  root = tmp_path.resolve()
+  for directory in (root / 'data', root, root.parent):
+    assert str(directory) in synced, directory
   assert str((tmp_path / format_lib.EPISODES).resolve()) in synced
   assert str((tmp_path / format_lib.INFO).resolve()) + '.partial' in synced
   # And none with the switch off.

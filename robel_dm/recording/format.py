@@ -135,6 +135,10 @@ def prepare(directory: pathlib.Path) -> None:
     probe = directory / 'meta' / '.write-probe'
     probe.write_bytes(b'robel_dm')
     probe.unlink()
+    # The new directories' entries (in their parents), so that a power cut
+    # keeps them.
+    for path in ((directory / CHUNK).parent, directory, directory.parent):
+      fsync_directory(path)
   except OSError as error:
     raise RecordingError(
       f'cannot write a recording in {directory}: {error}'
