@@ -100,6 +100,13 @@ class ReplayPolicy:
         _check_task(directory, episode.metadata, domain, task, task_kwargs)
       if check_seed:
         _check_seed(directory, episode.metadata, i, seed)
+      if episodes is not None and not episode.metadata.get('complete', True):
+        # Found now, not when the replay runs out of actions mid-episode.
+        raise PolicyError(
+          f'episode {i} of the recording {directory} was cut short after '
+          f'{len(episode) - 1} steps; replay the {i} before it '
+          f'(--episodes={i})'
+        )
     self._actions = [episode.steps['action'] for episode in recorded]
     self._episode = -1
     self._frame = 0

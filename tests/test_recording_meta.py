@@ -122,6 +122,15 @@ def test_a_recording_that_does_not_say_replays(tmp_path):
     policies.ReplayPolicy(older, *_TASK, seed=7, check_seed=True)
 
 
+def test_a_cut_short_episode_is_refused_before_the_replay_starts(tmp_path):
+  evaluate.evaluate(*_TASK, 1, policy='zero', seed=0, record=tmp_path)
+  _record_directly(tmp_path, {'domain': _TASK[0], 'task': _TASK[1]})
+  # It used to fail mid-episode, after the first episode had run.
+  with pytest.raises(ValueError, match='episode 1 .* cut short after 1 steps'):
+    policies.ReplayPolicy(str(tmp_path), *_TASK, seed=0, episodes=2)
+  policies.ReplayPolicy(str(tmp_path), *_TASK, seed=0, episodes=1)
+
+
 def test_the_command_refuses_in_one_line_unless_allowed(
   recorded, built, evaluate_flags, capsys
 ):
