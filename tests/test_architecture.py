@@ -131,21 +131,30 @@ def test_no_contract_is_weakened():
 
 
 def _foreign_private_reads(path: pathlib.Path) -> list[str]:
-  """Every `x._name` in `path` where x is not `self` or `cls`: a private
-  name read from another object (dunder names aside)."""
+  """Every `x._name` in `path` where x is not the object itself (`self`,
+  `cls`, or `super()`: the object's own method as its parent class has
+  it): a private name read from another object (dunder names aside)."""
   found = []
   for node in ast.walk(ast.parse(path.read_text())):
     if (
       isinstance(node, ast.Attribute)
       and node.attr.startswith('_')
       and not node.attr.startswith('__')
-      and not (isinstance(node.value, ast.Name) and node.value.id in _OWN)
+      and not _own(node.value)
     ):
       found.append(f'line {node.lineno}: {ast.unparse(node)}')
   return found
 
 
-_OWN = ('self', 'cls')
+def _own(node: ast.expr) -> bool:
+  if isinstance(node, ast.Name):
+    return node.id in ('self', 'cls')
+  return (
+    isinstance(node, ast.Call)
+    and isinstance(node.func, ast.Name)
+    and node.func.id == 'super'
+    and not node.args
+  )
 
 
 @pytest.mark.parametrize(
@@ -164,6 +173,13 @@ def test_the_private_name_rule_catches_a_physics_internal(tmp_path):
   probe = tmp_path / 'probe.py'
   probe.write_text('def f(physics):\n  return physics._contexts\n')
   assert _foreign_private_reads(probe) == ['line 2: physics._contexts']
+  # An override calling its parent's version reads its own name; a
+  # two-argument super() of another object does not.
+  probe.write_text(
+    'class A(B):\n  def _setup(self, other):\n    super()._setup()\n'
+    '    super(B, other)._setup()\n'
+  )
+  assert _foreign_private_reads(probe) == ['line 4: super(B, other)._setup']
 
 
 def test_the_adapter_documents_every_private_name_it_uses():

@@ -181,6 +181,30 @@ def test_a_recorded_run_is_not_trained_again_without_its_folder(sandbox):
   assert json.loads(baselines.RESULTS.read_text()) == rows
 
 
+def test_an_unsolved_run_trains_on_when_the_plan_raises_its_budget(sandbox):
+  name = 'dclaw_pose_random_sac_seed0'
+  run = baselines.Run('dclaw', 'pose_random', 'sac', 0)
+  baselines.train_queue(0, 1, name, None)
+  row = json.loads(baselines.RESULTS.read_text())[0]
+  assert row['budget'] == 16 and baselines.done(run)
+  unsolved = row['success'] < baselines.PLAN['solved']
+  baselines.PLAN['tasks']['dclaw/pose_random']['steps'] = 32
+  # Unsolved at 16 steps: the run goes on to the new budget, from its
+  # folder; a solved one would stand.
+  assert baselines.done(run) is not unsolved and unsolved
+  baselines.train_queue(0, 1, name, None)
+  row = json.loads(baselines.RESULTS.read_text())[0]
+  assert (row['budget'], row['env_steps']) == (32, 32)
+  # Without its folder, a recorded run is judged by its record alone.
+  shutil.rmtree(baselines.RUNS_DIR)
+  assert baselines.done(run)
+  baselines.PLAN['tasks']['dclaw/pose_random']['steps'] = 48
+  assert not baselines.done(run) and not baselines.settled(run)
+  solved = dict(row, success=1.0)
+  baselines.merge_results([solved])
+  assert baselines.settled(run)
+
+
 def test_a_queue_takes_its_share_and_bad_selections_are_refused(sandbox):
   with pytest.raises(ValueError, match='no run of the table matches'):
     baselines.select('nothing_*')

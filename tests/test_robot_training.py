@@ -20,7 +20,7 @@ pytest.importorskip('sbx')
 pytest.importorskip('dynamixel_sdk')
 
 from robel_dm import recording, suite  # noqa: E402
-from robel_dm.learning import learner, robot  # noqa: E402
+from robel_dm.learning import actor, learner, robot  # noqa: E402
 from robel_dm.learning import train as train_lib  # noqa: E402
 from tests import child_signals  # noqa: E402
 
@@ -293,7 +293,7 @@ class _FakeLearner:
   def __init__(self, setup):
     rng = np.random.default_rng(0)
     sizes = [setup.observation_size, 8, setup.action_size, setup.action_size]
-    self.actor = learner.StochasticActor(
+    self.actor = actor.StochasticActor(
       [(rng.normal(size=(8, sizes[0])), np.zeros(8)),
        (rng.normal(size=(sizes[2], 8)), np.zeros(sizes[2])),
        (rng.normal(size=(sizes[3], 8)), np.zeros(sizes[3]))]

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from robel_dm import policies
+from robel_dm.learning import actor
 
 # One CPU thread per run (XLA reads this when JAX starts): two runs on two
 # cores beat one run on both.
@@ -93,7 +94,7 @@ AGENTS: dict[str, Agent] = {
       'SAC',
       'stable-baselines3 2.9.2 SAC (torch), its defaults',
       (256, 256),
-      {'learning_starts': 1000},
+      {},
       replay=True,
     ),
     Agent(
@@ -174,9 +175,9 @@ def check_installed(agent: Agent) -> None:
 def _library_class(name: str):
   single_thread()
   if name in ('sac', 'sac_demos'):
-    import sbx  # noqa: PLC0415
+    from robel_dm.learning import sac  # noqa: PLC0415 (imports JAX)
 
-    return sbx.SAC
+    return sac.SAC
   if name == 'trpo':
     import sb3_contrib  # noqa: PLC0415
 
@@ -212,15 +213,7 @@ def load(agent: Agent, path, env):
 def sac_actor_layers(model) -> list[tuple[np.ndarray, np.ndarray]]:
   """An sbx SAC actor's dense layers as (weight (out, in), bias) arrays:
   the hidden layers, then the mean, then the log-std."""
-  params = model.policy.actor_state.params['params']
-  dense = sorted(
-    (name for name in params if name.startswith('Dense_')),
-    key=lambda name: int(name.split('_')[1]),
-  )
-  return [
-    (np.asarray(params[name]['kernel']).T, np.asarray(params[name]['bias']))
-    for name in dense
-  ]
+  return actor.layers_of(model.policy.actor_state.params)
 
 
 def numpy_policy(model, metadata: dict[str, Any]) -> policies.NumpyPolicy:

@@ -4,8 +4,8 @@ It keeps the replay buffer and the networks (an sbx SAC model), takes the
 actor's transitions from a queue, makes at most `updates_per_step` gradient
 updates per transition, and sends the actor's weights back a few times a
 second; it runs at a lower scheduling priority than the robot's control
-loop. `Learner` is its handle in the actor's process, `StochasticActor`
-the policy the actor samples from (see `robel_dm.learning.robot`).
+loop. `Learner` is its handle in the actor's process; the actor samples
+from an `actor.StochasticActor` (see `robel_dm.learning.robot`).
 """
 
 import contextlib
@@ -17,13 +17,12 @@ import pathlib
 import queue
 import signal
 import time
-from typing import Any
 
 import gymnasium
 import numpy as np
 
-from robel_dm import policies
 from robel_dm.learning import agents, demos, replay
+from robel_dm.learning.actor import StochasticActor
 
 # The learner sends actor weights at most this often, s.
 _PUBLISH_INTERVAL = 0.2
@@ -33,39 +32,6 @@ _LEARNER_NICENESS = 10
 _STOP_UPDATES = 2_000
 # How long a stopping learner may take to save, s.
 _STOP_TIMEOUT = 120.0
-
-
-class StochasticActor:
-  """SAC's actor in numpy: tanh of a Gaussian whose mean and log-std the
-  network gives (the deterministic action is tanh of the mean)."""
-
-  def __init__(self, layers: list[tuple[np.ndarray, np.ndarray]]):
-    *self._hidden, self._mean, self._log_std = layers
-
-  def _features(self, observation: np.ndarray) -> np.ndarray:
-    x = observation
-    for weight, bias in self._hidden:
-      x = np.maximum(weight @ x + bias, 0.0)
-    return x
-
-  def mean(self, observation: np.ndarray) -> np.ndarray:
-    weight, bias = self._mean
-    return np.tanh(weight @ self._features(observation) + bias)
-
-  def sample(
-    self, observation: np.ndarray, rng: np.random.Generator
-  ) -> np.ndarray:
-    x = self._features(observation)
-    mean = self._mean[0] @ x + self._mean[1]
-    # sbx clips the log-std to [-20, 2].
-    log_std = np.clip(self._log_std[0] @ x + self._log_std[1], -20.0, 2.0)
-    return np.tanh(mean + np.exp(log_std) * rng.standard_normal(mean.shape))
-
-  def numpy_policy(self, metadata: dict[str, Any]) -> policies.NumpyPolicy:
-    layers = [*self._hidden, self._mean]
-    return policies.NumpyPolicy(
-      [w for w, _ in layers], [b for _, b in layers], 'relu', 'tanh', metadata
-    )
 
 
 @dataclasses.dataclass(frozen=True)

@@ -167,14 +167,45 @@ def _key(row: dict) -> tuple:
   )
 
 
+def _recorded_row(run: Run) -> dict | None:
+  if not RESULTS.is_file():
+    return None
+  mine = _key(dataclasses.asdict(run) | {'task_kwargs': run.task_kwargs})
+  rows = json.loads(RESULTS.read_text())
+  return next((row for row in rows if _key(row) == mine), None)
+
+
 def recorded(run: Run) -> bool:
   """Whether docs/baselines.json holds the run (its folder may be gone:
   run folders are not committed, the records are)."""
-  if not RESULTS.is_file():
-    return False
-  rows = json.loads(RESULTS.read_text())
-  mine = _key(dataclasses.asdict(run) | {'task_kwargs': run.task_kwargs})
-  return any(_key(row) == mine for row in rows)
+  return _recorded_row(run) is not None
+
+
+def _short_of_plan(success: float, budget: int, run: Run) -> bool:
+  """Whether a result needs more training: unsolved, and trained to a
+  smaller budget than the plan now gives the run."""
+  return success < PLAN['solved'] and budget < run.config().steps
+
+
+def settled(run: Run) -> bool:
+  """Whether the table holds the run's result under the plan as it is:
+  recorded, and solved or trained to the plan's budget. A run left
+  unsolved at a budget the plan has since raised goes on (from its folder,
+  or from the start where the folder is gone); a solved one would have
+  stopped at the same point under the larger budget, so it stands."""
+  row = _recorded_row(run)
+  return row is not None and not _short_of_plan(
+    row['success'], row.get('budget', 0), run
+  )
+
+
+def done(run: Run) -> bool:
+  """Whether the run needs no more training under the plan."""
+  if finished(run):
+    final = json.loads((run.directory / FINAL).read_text())
+    steps = json.loads((run.directory / 'config.json').read_text())['steps']
+    return not _short_of_plan(final['success'], steps, run)
+  return settled(run)
 
 
 def demonstrations(run: Run, log=print) -> str | None:
@@ -241,7 +272,10 @@ def train_run(run: Run, log=print) -> dict | None:
   from robel_dm.learning import agents, train  # noqa: PLC0415
 
   if finished(run):
-    return record(run)
+    if done(run):
+      return record(run)
+    # The plan raised an unsolved run's budget: it trains on from here.
+    (run.directory / FINAL).unlink()
   demos = ()
   if agents.get(run.algo).needs_demos:
     source = demonstrations(run, log)
@@ -356,7 +390,7 @@ def train_queue(
     if deadline and time.monotonic() > deadline:
       print('time budget used up; the rest resumes on the next call')
       return
-    if recorded(run) and not finished(run):
+    if done(run) and not finished(run):
       continue
     result = train_run(run, log=lambda line: print(line, flush=True))
     if result is None:
@@ -382,7 +416,7 @@ def train_ray(address: str, pattern: str | None) -> list[dict]:
   instance on this machine for the call."""
   from robel_dm import parallel  # noqa: PLC0415
 
-  chosen = select(pattern)
+  chosen = [run for run in select(pattern) if finished(run) or not done(run)]
   with parallel.ray_session(address) as ray:
     remote = ray.remote(num_cpus=1)(_remote_train_run)
     pending = {remote.remote(run, PLAN, RUNS_DIR): run for run in chosen}

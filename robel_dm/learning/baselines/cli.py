@@ -26,8 +26,7 @@ def main(argv: list[str] | None = None) -> int:
   try:
     if args.command == 'list':
       for run in baselines.runs():
-        done = baselines.finished(run) or baselines.recorded(run)
-        print(f'{run.name:50s} {"done" if done else ""}')
+        print(f'{run.name:50s} {"done" if baselines.done(run) else ""}')
     elif args.command == 'report':
       report.write()
     elif args.ray_address:

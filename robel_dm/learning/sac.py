@@ -1,0 +1,142 @@
+"""SAC as `train --algo=sac` runs it: sbx's jitted updates, numpy around
+them.
+
+sbx (Stable-Baselines3's API on JAX) makes SAC's gradient updates in one
+jitted call. Around them, SB3's loop spends per env step about a
+millisecond on two things this subclass does in numpy instead, with the
+same mathematics:
+
+- the exploration action: a jitted JAX call per step in sbx; here the
+  actor in numpy (`actor.StochasticActor`), its weights read once per
+  update;
+- the replay sample: copied through torch tensors in SB3; here indexed
+  straight out of the buffer's arrays.
+
+Both random streams (exploration noise, replay indices) are generators of
+the model, saved with it, so a resumed run continues them.
+"""
+
+import numpy as np
+import sbx
+from sbx.common.type_aliases import ReplayBufferSamplesNp
+from sbx.sac.policies import SACPolicy
+
+from robel_dm.learning import actor
+
+
+class NumpyActingPolicy(SACPolicy):
+  """sbx's SAC policy, acting with its actor in numpy."""
+
+  def __init__(self, *args, **kwargs):
+    super().__init__(*args, **kwargs)
+    # Seeded by `SAC.set_random_seed`.
+    self.rng = np.random.default_rng(0)
+    self._actor: actor.StochasticActor | None = None
+    self._actor_of = None
+
+  def numpy_actor(self) -> actor.StochasticActor:
+    """The current actor in numpy (read again after each update)."""
+    if self._actor_of is not self.actor_state:
+      self._actor = actor.StochasticActor(
+        actor.layers_of(self.actor_state.params)
+      )
+      self._actor_of = self.actor_state
+    return self._actor
+
+  def _predict(self, observation, deterministic: bool = False):
+    observation = np.asarray(observation, np.float32)
+    if deterministic:
+      return self.numpy_actor().mean(observation)
+    return self.numpy_actor().sample(observation, self.rng)
+
+  def __getstate__(self):
+    state = self.__dict__.copy()
+    state['_actor'] = state['_actor_of'] = None  # Rebuilt when needed.
+    return state
+
+
+class SAC(sbx.SAC):
+  """sbx's SAC, acting and sampling its replay buffer in numpy."""
+
+  policy_aliases = {'MlpPolicy': NumpyActingPolicy}  # noqa: RUF012
+
+  def set_random_seed(self, seed: int | None) -> None:
+    super().set_random_seed(seed)
+    # Exploration noise and replay indices: streams of their own.
+    streams = np.random.SeedSequence(seed).spawn(2)
+    self.replay_rng = np.random.default_rng(streams[0])
+    self._exploration_rng = np.random.default_rng(streams[1])
+
+  def _setup_model(self) -> None:
+    # SB3's `load` sets the saved attributes (the policy among them), then
+    # calls this, which reseeds: a loaded model keeps its saved streams.
+    loaded = getattr(self, 'policy', None) is not None
+    saved = (self.key, getattr(self, 'replay_rng', None)) if loaded else None
+    super()._setup_model()
+    if loaded:
+      self.key = saved[0]
+      self.replay_rng = saved[1] or self.replay_rng
+    else:
+      self.policy.rng = self._exploration_rng
+    del self._exploration_rng
+
+  def sample_replay(self, count: int) -> ReplayBufferSamplesNp:
+    """`count` transitions drawn uniformly (with replacement) from the
+    buffer, as SB3's `ReplayBuffer.sample` draws them."""
+    buffer = self.replay_buffer
+    held = buffer.buffer_size if buffer.full else buffer.pos
+    rows = self.replay_rng.integers(0, held, size=count)
+    envs = self.replay_rng.integers(0, buffer.n_envs, size=count)
+    # A transition cut by the time limit is not terminal: it bootstraps.
+    terminal = buffer.dones[rows, envs] * (1.0 - buffer.timeouts[rows, envs])
+    return ReplayBufferSamplesNp(
+      buffer.observations[rows, envs],
+      buffer.actions[rows, envs],
+      buffer.next_observations[rows, envs],
+      terminal.astype(np.float32),
+      buffer.rewards[rows, envs].astype(np.float32),
+      np.full(count, self.gamma, np.float32),
+    )
+
+  def train(self, gradient_steps: int, batch_size: int) -> None:
+    """`gradient_steps` updates on batches of `batch_size`, in one call."""
+    self._maybe_reset_params()
+    data = self.sample_replay(batch_size * gradient_steps)
+    learning_rate = self.lr_schedule(self._current_progress_remaining)
+    self._update_learning_rate(
+      self.policy.actor_state.opt_state,
+      learning_rate=learning_rate,
+      name='learning_rate_actor',
+    )
+    self._update_learning_rate(
+      self.policy.qf_state.opt_state,
+      learning_rate=self.initial_qf_learning_rate or learning_rate,
+      name='learning_rate_critic',
+    )
+    (
+      self.policy.qf_state,
+      self.policy.actor_state,
+      self.ent_coef_state,
+      self.key,
+      losses,
+    ) = self._train(
+      self.tau,
+      self.target_entropy,
+      gradient_steps,
+      data,
+      self.policy_delay,
+      (self._n_updates + 1) % self.policy_delay,
+      self.policy.qf_state,
+      self.policy.actor_state,
+      self.ent_coef_state,
+      self.key,
+    )
+    self._n_updates += gradient_steps
+    actor_loss, critic_loss, ent_coef_loss, ent_coef = losses
+    self.logger.record(
+      'train/n_updates', self._n_updates, exclude='tensorboard'
+    )
+    self.logger.record('train/actor_loss', float(actor_loss))
+    self.logger.record('train/critic_loss', float(critic_loss))
+    self.logger.record('train/ent_coef_loss', float(ent_coef_loss))
+    self.logger.record('train/ent_coef', float(ent_coef))

@@ -1,0 +1,133 @@
+"""The default agent's SAC: sbx's updates, acting and replay in numpy."""
+
+import gymnasium
+import numpy as np
+import pytest
+
+pytest.importorskip('sbx')
+
+from robel_dm.learning import actor, agents  # noqa: E402
+from robel_dm.learning import sac as sac_lib  # noqa: E402
+
+
+class _Random(gymnasium.Env):
+  """A stand-in task: random observations, reward and episode ends."""
+
+  def __init__(self):
+    self.observation_space = gymnasium.spaces.Box(-1, 1, (7,), np.float32)
+    self.action_space = gymnasium.spaces.Box(-1, 1, (3,), np.float32)
+    self._rng = np.random.default_rng(0)
+    self._t = 0
+
+  def reset(self, *, seed=None, options=None):
+    self._t = 0
+    return self.observation_space.sample(), {}
+
+  def step(self, action):
+    self._t += 1
+    reward = float(self._rng.normal())
+    end = self._t == 10
+    return self.observation_space.sample(), reward, False, end, {}
+
+
+def _model(seed=0, **kwargs):
+  from stable_baselines3.common.vec_env import DummyVecEnv  # noqa: PLC0415
+
+  agents.single_thread()
+  settings = {
+    'train_freq': 8,
+    'gradient_steps': 8,
+    'learning_starts': 16,
+    'batch_size': 4,
+    'buffer_size': 1000,
+    'policy_kwargs': {'net_arch': [8, 8]},
+    **kwargs,
+  }
+  return sac_lib.SAC(
+    'MlpPolicy', DummyVecEnv([_Random]), seed=seed, verbose=0, **settings
+  )
+
+
+def test_numpy_acting_samples_sbx_actors_distribution():
+  model = _model()
+  model.learn(64)
+  policy = model.policy
+  observations = np.random.default_rng(1).uniform(-1, 1, (5, 7))
+  observations = observations.astype(np.float32)
+  distribution = policy.actor_state.apply_fn(
+    policy.actor_state.params, observations
+  ).distribution
+  mean = np.asarray(distribution.mean())
+  std = np.asarray(distribution.stddev())
+  np.testing.assert_allclose(
+    policy._predict(observations, deterministic=True),
+    np.tanh(mean),
+    rtol=1e-5,
+    atol=1e-6,
+  )
+  # A sample is tanh(mean + std * noise) with the policy's own noise.
+  policy.rng = np.random.default_rng(7)
+  sample = policy._predict(observations)
+  noise = np.random.default_rng(7).standard_normal(mean.shape)
+  np.testing.assert_allclose(
+    sample, np.tanh(mean + std * noise), rtol=1e-4, atol=1e-5
+  )
+
+
+def test_the_numpy_actor_follows_each_update():
+  model = _model()
+  model.learn(32)
+  before = model.policy.numpy_actor().mean(np.zeros(7, np.float32))
+  model.train(gradient_steps=8, batch_size=4)
+  after = model.policy.numpy_actor().mean(np.zeros(7, np.float32))
+  expected = actor.StochasticActor(agents.sac_actor_layers(model))
+  np.testing.assert_array_equal(after, expected.mean(np.zeros(7, np.float32)))
+  assert not np.array_equal(before, after)
+
+
+def test_replay_samples_are_stored_transitions_with_timeouts_not_terminal():
+  model = _model()
+  model.learn(40)
+  buffer = model.replay_buffer
+  stored = {buffer.observations[i, 0].tobytes(): i for i in range(buffer.pos)}
+  sample = model.sample_replay(200)
+  for k in range(200):
+    i = stored[sample.observations[k].tobytes()]
+    np.testing.assert_array_equal(sample.actions[k], buffer.actions[i, 0])
+    np.testing.assert_array_equal(
+      sample.next_observations[k], buffer.next_observations[i, 0]
+    )
+    assert sample.rewards[k] == np.float32(buffer.rewards[i, 0])
+    # Every episode of the stand-in ends by its time limit: never terminal.
+    assert sample.dones[k] == 0.0
+  assert buffer.dones[: buffer.pos, 0].sum() == 4  # 4 episodes ended.
+  assert len({row.tobytes() for row in sample.observations}) > 30
+  assert np.all(sample.discounts == np.float32(model.gamma))
+
+
+def test_a_saved_model_continues_its_random_streams(tmp_path):
+  model = _model()
+  model.learn(48)
+  model.save(tmp_path / 'model.zip')
+  loaded = sac_lib.SAC.load(tmp_path / 'model.zip', env=model.get_env())
+  assert isinstance(loaded.policy, sac_lib.NumpyActingPolicy)
+  for one in (model, loaded):
+    one.replay_buffer = model.replay_buffer
+  np.testing.assert_array_equal(
+    model.sample_replay(16).observations, loaded.sample_replay(16).observations
+  )
+  observation = np.zeros((1, 7), np.float32)
+  np.testing.assert_array_equal(
+    model.policy._predict(observation), loaded.policy._predict(observation)
+  )
+  np.testing.assert_array_equal(np.asarray(model.key), np.asarray(loaded.key))
+
+
+def test_seeds_give_their_own_streams():
+  one, same, other = _model(seed=1), _model(seed=1), _model(seed=2)
+  draws = [m.policy.rng.standard_normal(4) for m in (one, same, other)]
+  np.testing.assert_array_equal(draws[0], draws[1])
+  assert not np.array_equal(draws[0], draws[2])
+  replay = [m.replay_rng.integers(0, 1000, 8) for m in (one, same, other)]
+  np.testing.assert_array_equal(replay[0], replay[1])
+  assert not np.array_equal(replay[0], replay[2])
