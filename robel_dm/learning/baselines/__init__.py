@@ -78,7 +78,7 @@ class Run:
     steps, every = settings['steps'], settings['eval_every']
     kind = agents.get(self.algo).kind
     if kind == agents.ON_POLICY:
-      steps *= PLAN['on_policy_factor']
+      steps = min(steps * PLAN['on_policy_factor'], PLAN['on_policy_max_steps'])
       every *= PLAN['on_policy_factor']
     elif kind == agents.IMITATION:
       steps, every = PLAN['bc_epochs'], PLAN['bc_epochs'] // 10
