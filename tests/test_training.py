@@ -271,8 +271,13 @@ def test_agents_that_learn_from_demonstrations_need_them(tmp_path):
 def test_every_agent_names_its_source_and_paper_kind():
   kinds = {agent.paper for agent in agents.AGENTS.values()}
   assert kinds == {'SAC', 'NPG', 'BC', 'DAPG'}
+  libraries = {agents.SAC_JAX, agents.SAC_TORCH, agents.PPO_TORCH,
+               agents.TRPO_TORCH, agents.IMITATION_JAX}  # fmt: skip
   for agent in agents.AGENTS.values():
-    assert agent.source and agent.hidden
+    assert agent.source and agent.hidden and agent.library in libraries
+  # The default agent is the numpy-acting SAC; sac_lr3e4 its predecessor.
+  assert agents.AGENTS['sac'].hyperparameters['learning_rate'] == 1e-3
+  assert 'learning_rate' not in agents.AGENTS['sac_lr3e4'].hyperparameters
 
 
 @pytest.mark.parametrize('missing', ['sbx', 'stable_baselines3', 'jax'])

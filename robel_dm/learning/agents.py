@@ -33,6 +33,13 @@ from robel_dm.learning import actor
 _XLA_ONE_THREAD = (
   '--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1'
 )
+SAC_JAX, SAC_TORCH, PPO_TORCH, TRPO_TORCH, IMITATION_JAX = (
+  'sbx_sac',
+  'sb3_sac',
+  'sb3_ppo',
+  'sb3_contrib_trpo',
+  'imitation',
+)
 OFF_POLICY, ON_POLICY, IMITATION, DEMO_AUGMENTED = (
   'off-policy',
   'on-policy',
@@ -54,6 +61,9 @@ class Agent:
     hyperparameters: the library's constructor arguments robel_dm sets.
     replay: whether it keeps a replay buffer (saved beside checkpoints).
     needs_demos: whether it learns from demonstrations (`--demos`).
+    library: the class that implements it: `SAC_JAX`
+      (`robel_dm.learning.sac.SAC`), `SAC_TORCH`, `PPO_TORCH`, `TRPO_TORCH`
+      or `IMITATION_JAX`.
   """
 
   name: str
@@ -64,6 +74,7 @@ class Agent:
   hyperparameters: dict[str, Any]
   replay: bool = False
   needs_demos: bool = False
+  library: str = ''
 
 
 # SAC's usual settings (256 x 256, learning rate 3e-4, one update per env
@@ -92,6 +103,7 @@ AGENTS: dict[str, Agent] = {
       (256, 256),
       _SAC,
       replay=True,
+      library=SAC_JAX,
     ),
     Agent(
       'sac_lr3e4',
@@ -102,6 +114,7 @@ AGENTS: dict[str, Agent] = {
       (256, 256),
       _SAC_LR3E4,
       replay=True,
+      library=SAC_JAX,
     ),
     Agent(
       'sac_sb3',
@@ -111,6 +124,7 @@ AGENTS: dict[str, Agent] = {
       (256, 256),
       {},
       replay=True,
+      library=SAC_TORCH,
     ),
     Agent(
       'ppo',
@@ -119,6 +133,7 @@ AGENTS: dict[str, Agent] = {
       'stable-baselines3 2.9.2 PPO (torch), its defaults',
       (64, 64),
       {},
+      library=PPO_TORCH,
     ),
     Agent(
       'trpo',
@@ -127,6 +142,7 @@ AGENTS: dict[str, Agent] = {
       'sb3-contrib 2.9.2 TRPO (torch), its defaults',
       (64, 64),
       {},
+      library=TRPO_TORCH,
     ),
     Agent(
       'bc',
@@ -137,6 +153,7 @@ AGENTS: dict[str, Agent] = {
       (256, 256),
       {'epochs': 300, 'batch_size': 256, 'learning_rate': 1e-3},
       needs_demos=True,
+      library=IMITATION_JAX,
     ),
     Agent(
       'sac_demos',
@@ -148,6 +165,7 @@ AGENTS: dict[str, Agent] = {
       _SAC_LR3E4,
       replay=True,
       needs_demos=True,
+      library=SAC_JAX,
     ),
   )
 }
@@ -184,29 +202,31 @@ def check_installed(agent: Agent) -> None:
     import jax  # noqa: F401, PLC0415
     import optax  # noqa: F401, PLC0415
   else:
-    _library_class(agent.name)
+    _library_class(agent.library)
 
 
-def _library_class(name: str):
+def _library_class(library: str):
   single_thread()
-  if name in ('sac', 'sac_lr3e4', 'sac_demos'):
+  if library == SAC_JAX:
     from robel_dm.learning import sac  # noqa: PLC0415 (imports JAX)
 
     return sac.SAC
-  if name == 'trpo':
+  if library == TRPO_TORCH:
     import sb3_contrib  # noqa: PLC0415
 
     return sb3_contrib.TRPO
   import stable_baselines3  # noqa: PLC0415
 
-  return {'sac_sb3': stable_baselines3.SAC, 'ppo': stable_baselines3.PPO}[name]
+  return {SAC_TORCH: stable_baselines3.SAC, PPO_TORCH: stable_baselines3.PPO}[
+    library
+  ]
 
 
 def build(
   agent: Agent, env, seed: int, hidden: tuple[int, ...], buffer_size: int
 ):
   """A new model of `agent` learning on the vectorized `env`."""
-  cls = _library_class(agent.name)
+  cls = _library_class(agent.library)
   kwargs = dict(agent.hyperparameters)
   if agent.replay:
     kwargs['buffer_size'] = max(buffer_size, 1)
@@ -222,7 +242,7 @@ def build(
 
 def load(agent: Agent, path, env):
   """A model saved by `model.save(path)`."""
-  return _library_class(agent.name).load(str(path), env=env, device='cpu')
+  return _library_class(agent.library).load(str(path), env=env, device='cpu')
 
 
 def sac_actor_layers(model) -> list[tuple[np.ndarray, np.ndarray]]:

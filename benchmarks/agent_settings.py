@@ -1,0 +1,111 @@
+r"""Env steps to 80% success for candidate settings of the default agent.
+
+    MUJOCO_GL=egl python benchmarks/agent_settings.py --settings=lr1e3 \
+        --tasks=pose_fixed,stand_fixed,turn_fixed --seeds=0,1,2
+
+How the default agent (`sac`) was chosen: each candidate is sbx's SAC as
+`train` runs it (robel_dm.learning.sac), with the settings below; each run
+trains one Fixed task from one seed, evaluates the deterministic actor
+every few thousand steps (one episode: a Fixed task's episodes are all the
+same) and stops at the first evaluation with success >= 0.8, or at the
+budget. One line of JSON per run is printed and appended to --output.
+What an env step costs differs between settings (a batch of 64 or 128-unit
+layers cost less per update), so steps and seconds are both reported.
+"""
+
+import argparse
+import dataclasses
+import json
+import pathlib
+import shutil
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+_BASE = {
+  'train_freq': 8,
+  'gradient_steps': 8,
+  'learning_starts': 500,
+  'batch_size': 128,
+}
+# name -> (hidden layers, sbx SAC arguments).
+SETTINGS = {
+  'lr3e4': ((256, 256), _BASE),  # The previous default (sac_lr3e4).
+  'half_updates': ((256, 256), {**_BASE, 'gradient_steps': 4}),
+  'narrow': ((128, 128), _BASE),
+  'batch64': ((256, 256), {**_BASE, 'batch_size': 64}),
+  'narrow_lr1e3': ((128, 128), {**_BASE, 'learning_rate': 1e-3}),
+  'narrow_half_updates': ((128, 128), {**_BASE, 'gradient_steps': 4}),
+  'narrow_batch64': ((128, 128), {**_BASE, 'batch_size': 64}),
+  'lr1e3': ((256, 256), {**_BASE, 'learning_rate': 1e-3}),  # The default.
+  'batch64_lr1e3': (
+    (256, 256),
+    {**_BASE, 'batch_size': 64, 'learning_rate': 1e-3},
+  ),
+}
+# task -> (domain, evaluate every, budget in env steps).
+TASKS = {
+  'pose_fixed': ('dclaw', 1_000, 30_000),
+  'stand_fixed': ('dkitty', 2_000, 60_000),
+  'turn_fixed': ('dclaw', 5_000, 150_000),
+}
+
+
+def run(setting: str, task: str, seed: int, output: pathlib.Path) -> dict:
+  from robel_dm.learning import agents, train  # noqa: PLC0415
+
+  hidden, hyperparameters = SETTINGS[setting]
+  name = f'candidate_{setting}'
+  agents.AGENTS[name] = dataclasses.replace(
+    agents.get('sac'),
+    name=name,
+    hidden=hidden,
+    hyperparameters=hyperparameters,
+  )
+  domain, every, budget = TASKS[task]
+  config = train.RunConfig(
+    domain=domain,
+    task=task,
+    algo=name,
+    seed=seed,
+    steps=budget,
+    eval_every=every,
+    eval_episodes=1,
+    stop_at_success=0.8,
+  )
+  directory = output / f'{task}_{setting}_seed{seed}'
+  shutil.rmtree(directory, ignore_errors=True)
+  history = train.train(config, directory, log=lambda line: None)
+  last = history[-1]
+  return {
+    'task': task,
+    'setting': setting,
+    'seed': seed,
+    'solved': last['success_rate'] >= 0.8,
+    'env_steps': last['env_steps'],
+    'train_seconds': round(last['wall_time'] - last['eval_time'], 1),
+    'cpu_seconds': round(last['cpu_time'], 1),
+  }
+
+
+def main() -> None:
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  parser.add_argument('--settings', default='lr1e3')
+  parser.add_argument('--tasks', default=','.join(TASKS))
+  parser.add_argument('--seeds', default='0,1,2')
+  parser.add_argument('--output', default=str(ROOT / 'runs/agent_settings'))
+  args = parser.parse_args()
+  output = pathlib.Path(args.output)
+  output.mkdir(parents=True, exist_ok=True)
+  for setting in args.settings.split(','):
+    if setting not in SETTINGS:
+      parser.error(f'--settings: {setting!r} is not one of {sorted(SETTINGS)}')
+  for setting in args.settings.split(','):
+    for task in args.tasks.split(','):
+      for seed in (int(s) for s in args.seeds.split(',')):
+        result = run(setting, task, seed, output)
+        print(json.dumps(result), flush=True)
+        with open(output / 'results.jsonl', 'a') as file:
+          file.write(json.dumps(result) + '\n')
+
+
+if __name__ == '__main__':
+  main()
