@@ -164,10 +164,14 @@ def test_the_report_is_derived_from_the_records(sandbox):
   )
   report.write()
   text = baselines.DOC.read_text()
-  assert 'old' not in text
+  assert '\nold\n' not in text
   assert '| dclaw/pose_random | sac | 0 | 16 |' in text
   assert '1 (deterministic)' in text
   assert (baselines.FIGURES / 'dclaw_pose_random.png').is_file()
+  # The status counts and the solved-by table come from the records too.
+  assert 'holds 2 records (0 of them runs outside the plan' in text
+  assert '| dkitty/walk_random | not yet | no run yet |' in text
+  assert '| dclaw/pose_fixed |' in text.split('<!-- solved -->')[1]
 
 
 def test_a_recorded_run_is_not_trained_again_without_its_folder(sandbox):

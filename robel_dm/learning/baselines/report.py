@@ -8,10 +8,13 @@ import collections
 import json
 import shutil
 
+from robel_dm import suite
 from robel_dm.learning import baselines, curves
 
 START, END = '<!-- table -->', '<!-- /table -->'
 SUMMARY_START, SUMMARY_END = '<!-- summary -->', '<!-- /summary -->'
+PROGRESS_START, PROGRESS_END = '<!-- progress -->', '<!-- /progress -->'
+SOLVED_START, SOLVED_END = '<!-- solved -->', '<!-- /solved -->'
 
 
 def _name(row: dict) -> str:
@@ -73,6 +76,64 @@ def summary_table(rows: list[dict]) -> str:
   return '\n'.join(lines)
 
 
+def progress(rows: list[dict]) -> str:
+  """How much of the plan the records hold, and what they cost."""
+  table = baselines.runs()
+  default = [r for r in table if r.algo == baselines.PLAN['default_agent']]
+  settled = {r.name for r in table if baselines.settled(r)}
+  planned = {
+    baselines.Run(
+      r['domain'], r['task'], r['algo'], r['seed'],
+      r['task_kwargs'].get('valve') == 'valve4',
+    ).name
+    for r in rows
+  }  # fmt: skip
+  outside = len(planned - {r.name for r in table})
+  cpu = sum(row['cpu_minutes'] for row in rows)
+  return (
+    f'The plan has {len(table)} runs: {len(default)} with the default agent '
+    f'(`{baselines.PLAN["default_agent"]}`) and {len(table) - len(default)} '
+    f'with the other kinds of agent. Settled (recorded, and solved or '
+    f"trained to the plan's budget): {len(settled)} of them, "
+    f'{len(settled & {r.name for r in default})} with the default agent. '
+    f'`baselines.json` holds {len(rows)} records ({outside} of them runs '
+    f'outside the plan, kept for comparison), {cpu:,.0f} CPU minutes of '
+    f'training in all.'
+  )
+
+
+def solved_table(rows: list[dict]) -> str:
+  """Per Fixed and Random task: the agents that solve it on every seed
+  of the plan, or the best any agent has done."""
+  seeds = len(baselines.PLAN['seeds'])
+  groups = collections.defaultdict(list)
+  for row in rows:
+    if not row['task_kwargs']:
+      groups[(row['domain'], row['task'], row['algo'])].append(row)
+  lines = [
+    f'| Task | Solved on {seeds} of {seeds} seeds by '
+    '| Otherwise, best so far |',
+    '|---|---|---|',
+  ]
+  for domain, task in sorted(suite.FIXED + suite.RANDOM):
+    solving, best = [], None
+    for (d, t, algo), group in sorted(groups.items()):
+      if (d, t) != (domain, task):
+        continue
+      count = sum(r['success'] >= baselines.PLAN['solved'] for r in group)
+      mean = sum(r['success'] for r in group) / len(group)
+      if count >= seeds:
+        solving.append(f'`{algo}`')
+      elif best is None or (count, mean) > best[0]:
+        successes = ', '.join(f'{r["success"]:.2f}' for r in group)
+        best = ((count, mean), f'`{algo}`: {successes}')
+    otherwise = '' if solving else (best[1] if best else 'no run yet')
+    lines.append(
+      f'| {domain}/{task} | {", ".join(solving) or "not yet"} | {otherwise} |'
+    )
+  return '\n'.join(lines)
+
+
 def _replace(text: str, start: str, end: str, body: str) -> str:
   if start not in text or end not in text:
     return f'{text}\n{start}\n{body}\n{end}\n'
@@ -128,6 +189,8 @@ def write() -> None:
   text = baselines.DOC.read_text() if baselines.DOC.is_file() else ''
   text = _replace(text, SUMMARY_START, SUMMARY_END, summary_table(rows))
   text = _replace(text, START, END, run_table(rows))
+  text = _replace(text, PROGRESS_START, PROGRESS_END, progress(rows))
+  text = _replace(text, SOLVED_START, SOLVED_END, solved_table(rows))
   baselines.DOC.write_text(text)
   print(summary_table(rows))
   print('figures:', ', '.join(figures(rows)))
