@@ -33,21 +33,31 @@ TASKS = {
 SOLVED = 0.8
 
 
-def _run(task: str, seed: int, algo: str, output: str) -> dict:
-  start = time.perf_counter()
+def until_solved(
+  domain: str, task: str, algo: str, seed: int, every: int, budget: int
+):
+  """A `train` run of a Fixed task that stops at its first evaluation with
+  success >= 0.8 (one evaluation episode: every episode is the same)."""
   from robel_dm.learning import train  # noqa: PLC0415
 
-  domain, every, budget = TASKS[task]
-  config = train.RunConfig(
+  return train.RunConfig(
     domain=domain,
     task=task,
     algo=algo,
     seed=seed,
     steps=budget,
     eval_every=every,
-    eval_episodes=1,  # Fixed tasks: every episode is the same one.
+    eval_episodes=1,
     stop_at_success=SOLVED,
   )
+
+
+def _run(task: str, seed: int, algo: str, output: str) -> dict:
+  start = time.perf_counter()
+  from robel_dm.learning import train  # noqa: PLC0415
+
+  domain, every, budget = TASKS[task]
+  config = until_solved(domain, task, algo, seed, every, budget)
   directory = pathlib.Path(output) / f'{task}_{algo}_seed{seed}'
   resume = (directory / train.CONFIG).is_file()
   history = train.curves.read_log(directory / train.EVAL_LOG) if resume else []
