@@ -92,6 +92,7 @@ def sandbox(tmp_path, monkeypatch):
     'dclaw/pose_random': {'steps': 16, 'eval_every': 8},
   }
   plan['valve4'], plan['every_agent'] = [], ['dclaw/pose_random']
+  plan['also'] = {}
   monkeypatch.setattr(baselines, 'PLAN', plan)
   for name, path in (('RUNS_DIR', 'runs'), ('RESULTS', 'docs/b.json'),
                      ('DOC', 'docs/table.txt'), ('FIGURES', 'docs/figures'),
@@ -213,6 +214,22 @@ def test_a_queue_takes_its_share_and_bad_selections_are_refused(sandbox):
   with pytest.raises(ValueError, match='no run of the table matches'):
     baselines.select('nothing_*')
   assert cli.main(['train', '--queue=2', '--queues=2']) == 2
+
+
+def test_list_says_what_the_runs_left_cost(sandbox, capsys):
+  # A solved Fixed run that took 6 CPU ms per env step.
+  baselines.merge_results([{
+    'domain': 'dclaw', 'task': 'pose_fixed', 'task_kwargs': {}, 'algo': 'sac',
+    'seed': 0, 'success': 1.0, 'budget': 16, 'env_steps': 40_000,
+    'cpu_minutes': 4.0,
+  }])  # fmt: skip
+  assert cli.main(['list']) == 0
+  out = capsys.readouterr().out
+  assert 'dclaw_pose_fixed_sac_seed0' in out.split('done')[0]
+  # sac on pose_random (16 steps) and sac_demos (16) are left; bc counts
+  # epochs and trpo has no recorded rate.
+  assert '16 env steps of off-policy agents at 6.0 CPU ms each' in out
+  assert 'runs to do' in out
 
 
 def test_the_table_fans_out_over_ray(sandbox):

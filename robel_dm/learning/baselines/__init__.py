@@ -422,8 +422,8 @@ def train_ray(address: str, pattern: str | None) -> list[dict]:
     pending = {remote.remote(run, PLAN, RUNS_DIR): run for run in chosen}
     records = []
     while pending:
-      done, _ = ray.wait(list(pending))
-      for ref in done:
+      ready, _ = ray.wait(list(pending))
+      for ref in ready:
         run = pending.pop(ref)
         result = ray.get(ref)
         if result is not None:

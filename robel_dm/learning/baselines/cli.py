@@ -2,6 +2,7 @@
 see the package's docstring)."""
 
 import argparse
+import json
 import sys
 
 from robel_dm.learning import baselines
@@ -27,6 +28,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == 'list':
       for run in baselines.runs():
         print(f'{run.name:50s} {"done" if baselines.done(run) else ""}')
+      if baselines.RESULTS.is_file():
+        rows = json.loads(baselines.RESULTS.read_text())
+        print(report.remaining(rows))
     elif args.command == 'report':
       report.write()
     elif args.ray_address:

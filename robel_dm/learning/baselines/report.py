@@ -7,6 +7,7 @@ table, the figures and the data never disagree.
 import collections
 import json
 import shutil
+import statistics
 
 from robel_dm import suite
 from robel_dm.learning import baselines, curves
@@ -99,6 +100,42 @@ def progress(rows: list[dict]) -> str:
     f'`baselines.json` holds {len(rows)} records ({outside} of them runs '
     f'outside the plan, kept for comparison), {cpu:,.0f} CPU minutes of '
     f'training in all.'
+  )
+
+
+def remaining(rows: list[dict]) -> str:
+  """What the runs still to do cost at most: their budgets, at the CPU
+  time per env step the records of the same kind of agent took."""
+  from robel_dm.learning import agents  # noqa: PLC0415
+
+  def kind(algo: str) -> str:
+    return agents.get(algo).kind
+
+  rate = collections.defaultdict(list)  # kind -> CPU ms per env step
+  for row in rows:
+    if row['env_steps'] > 20_000:  # Compilation and evaluation amortized.
+      rate[kind(row['algo'])].append(
+        row['cpu_minutes'] * 60_000 / row['env_steps']
+      )
+  todo = [run for run in baselines.runs() if not baselines.done(run)]
+  steps = collections.Counter()
+  for run in todo:
+    if kind(run.algo) != agents.IMITATION:  # Epochs: minutes at most.
+      steps[kind(run.algo)] += run.config().steps
+  minutes = sum(
+    count * statistics.median(rate[k]) / 60_000
+    for k, count in steps.items()
+    if rate[k]
+  )
+  parts = ', '.join(
+    f'{count:,} env steps of {k} agents'
+    + (f' at {statistics.median(rate[k]):.1f} CPU ms each' if rate[k] else '')
+    for k, count in sorted(steps.items())
+  )
+  return (
+    f"{len(todo)} runs to do: at most {parts or 'nothing'} (the records' "
+    f'median rate), about {minutes / 60:,.1f} CPU hours at full budgets; '
+    f'runs solved sooner stop sooner.'
   )
 
 
