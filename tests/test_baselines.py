@@ -118,6 +118,37 @@ def test_a_run_ends_with_a_fresh_evaluation_and_a_full_record(sandbox):
   assert fixed['deterministic'] and fixed['final_episodes'] == 1
 
 
+def test_an_early_stop_must_hold_on_fresh_episodes(sandbox, monkeypatch):
+  # Every training evaluation reads 1.0 (a lucky streak), so the run stops
+  # at its second evaluation; fresh episodes of the untrained policy fail,
+  # so it trains on, stopping and checking again, to its budget.
+  from robel_dm.learning import train  # noqa: PLC0415
+
+  real = train.evaluate_policy
+
+  def lucky(*args, **kwargs):
+    return real(*args, **kwargs) | {'success_rate': 1.0}
+
+  monkeypatch.setattr(train, 'evaluate_policy', lucky)
+  baselines.PLAN['tasks']['dclaw/pose_random'] = {'steps': 32, 'eval_every': 8}
+  run = baselines.Run('dclaw', 'pose_random', 'sac', 0)
+  lines = []
+  record = baselines.train_run(run, log=lines.append)
+  assert record['env_steps'] == 32 and record['success'] < 0.8
+  assert [c['env_steps'] for c in record['confirmations']] == [8, 16, 24]
+  assert sum('training on' in line for line in lines) == 3
+  # Each check has episodes of its own, apart from the final evaluation's.
+  seeds = [c['seed'] for c in record['confirmations']]
+  assert len(set(seeds)) == 3 and baselines.FINAL_SEED_OFFSET not in seeds
+  assert baselines.done(run)
+  # A record that stopped short of its budget unsolved is not settled: it
+  # trains on (from the start where its folder is gone).
+  short = dict(record, curve=record['curve'][:3])
+  baselines.merge_results([short])
+  shutil.rmtree(baselines.RUNS_DIR)
+  assert not baselines.settled(run) and not baselines.done(run)
+
+
 def test_demonstration_runs_use_the_reference_controller(sandbox):
   run = baselines.Run('dclaw', 'pose_random', 'bc', 0)
   record = baselines.train_run(run, log=lambda line: None)
@@ -221,7 +252,7 @@ def test_list_says_what_the_runs_left_cost(sandbox, capsys):
   baselines.merge_results([{
     'domain': 'dclaw', 'task': 'pose_fixed', 'task_kwargs': {}, 'algo': 'sac',
     'seed': 0, 'success': 1.0, 'budget': 16, 'env_steps': 40_000,
-    'cpu_minutes': 4.0,
+    'cpu_minutes': 4.0, 'curve': [[0, 0.0], [40_000, 1.0]],
   }])  # fmt: skip
   assert cli.main(['list']) == 0
   out = capsys.readouterr().out
