@@ -257,9 +257,11 @@ def test_list_says_what_the_runs_left_cost(sandbox, capsys):
   assert cli.main(['list']) == 0
   out = capsys.readouterr().out
   assert 'dclaw_pose_fixed_sac_seed0' in out.split('done')[0]
-  # sac on pose_random (16 steps) and sac_demos (16) are left; bc counts
-  # epochs and trpo has no recorded rate.
-  assert '16 env steps of off-policy agents at 6.0 CPU ms each' in out
+  # sac on pose_random (16 steps), sac_demos (16) and trpo (160) are left;
+  # bc counts epochs.
+  assert '16 env steps of sac (0.0 CPU h)' in out
+  # No record of sac_demos or trpo, nor of their kinds: no rate.
+  assert '16 env steps of sac_demos, 160 env steps of trpo, at' in out
   assert 'runs to do' in out
 
 

@@ -104,38 +104,38 @@ def progress(rows: list[dict]) -> str:
 
 
 def remaining(rows: list[dict]) -> str:
-  """What the runs still to do cost at most: their budgets, at the CPU
-  time per env step the records of the same kind of agent took."""
+  """What the runs still to do cost at most: their budgets, at the median
+  CPU time per env step of the same agent's records (of the same kind of
+  agent where the agent has none)."""
   from robel_dm.learning import agents  # noqa: PLC0415
 
-  def kind(algo: str) -> str:
-    return agents.get(algo).kind
-
-  rate = collections.defaultdict(list)  # kind -> CPU ms per env step
+  rates = collections.defaultdict(list)  # algo or kind -> CPU ms per step
   for row in rows:
     if row['env_steps'] > 20_000:  # Compilation and evaluation amortized.
-      rate[kind(row['algo'])].append(
-        row['cpu_minutes'] * 60_000 / row['env_steps']
-      )
+      rate = row['cpu_minutes'] * 60_000 / row['env_steps']
+      rates[row['algo']].append(rate)
+      rates[agents.get(row['algo']).kind].append(rate)
   todo = [run for run in baselines.runs() if not baselines.done(run)]
-  steps = collections.Counter()
+  steps, minutes = collections.Counter(), collections.Counter()
   for run in todo:
-    if kind(run.algo) != agents.IMITATION:  # Epochs: minutes at most.
-      steps[kind(run.algo)] += run.config().steps
-  minutes = sum(
-    count * statistics.median(rate[k]) / 60_000
-    for k, count in steps.items()
-    if rate[k]
-  )
+    kind = agents.get(run.algo).kind
+    if kind == agents.IMITATION:  # Epochs of seconds each.
+      continue
+    budget = run.config().steps
+    steps[run.algo] += budget
+    rate = rates.get(run.algo) or rates.get(kind)
+    if rate:
+      minutes[run.algo] += budget * statistics.median(rate) / 60_000
   parts = ', '.join(
-    f'{count:,} env steps of {k} agents'
-    + (f' at {statistics.median(rate[k]):.1f} CPU ms each' if rate[k] else '')
-    for k, count in sorted(steps.items())
+    f'{steps[algo]:,} env steps of {algo}'
+    + (f' ({minutes[algo] / 60:,.1f} CPU h)' if algo in minutes else '')
+    for algo in sorted(steps)
   )
   return (
-    f"{len(todo)} runs to do: at most {parts or 'nothing'} (the records' "
-    f'median rate), about {minutes / 60:,.1f} CPU hours at full budgets; '
-    f'runs solved sooner stop sooner.'
+    f'{len(todo)} runs to do: at most {parts or "nothing"}, at the median '
+    f"CPU ms per env step of the agent's records; about "
+    f'{sum(minutes.values()) / 60:,.1f} CPU hours at full budgets (runs '
+    f'solved sooner stop sooner).'
   )
 
 
