@@ -36,7 +36,7 @@ def main() -> None:
       timestep = env.step(policy(timestep))
       angles.append(valve())
     degrees = np.degrees(angles)
-    left = abs((degrees[-1] - 180 + 180) % 360 - 180)  # Wrapped to +-180.
+    left = abs(degrees[-1] % 360 - 180)  # From the goal, wrapped to +-180.
     print(f'{path}:')
     every = np.round(degrees[::4]).astype(int).tolist()
     print(f'  valve angle every 0.4 s, deg: {every}')

@@ -82,14 +82,14 @@ def progress(rows: list[dict]) -> str:
   table = baselines.runs()
   default = [r for r in table if r.algo == baselines.PLAN['default_agent']]
   settled = {r.name for r in table if baselines.settled(r)}
-  planned = {
+  recorded = {
     baselines.Run(
       r['domain'], r['task'], r['algo'], r['seed'],
       r['task_kwargs'].get('valve') == 'valve4',
     ).name
     for r in rows
   }  # fmt: skip
-  outside = len(planned - {r.name for r in table})
+  outside = len(recorded - {r.name for r in table})
   cpu = sum(row['cpu_minutes'] for row in rows)
   return (
     f'The plan has {len(table)} runs: {len(default)} with the default agent '
