@@ -131,3 +131,23 @@ def test_seeds_give_their_own_streams():
   replay = [m.replay_rng.integers(0, 1000, 8) for m in (one, same, other)]
   np.testing.assert_array_equal(replay[0], replay[1])
   assert not np.array_equal(replay[0], replay[2])
+
+
+def test_compiled_updates_are_cached_for_later_runs(tmp_path):
+  import os  # noqa: PLC0415
+  import subprocess  # noqa: PLC0415
+  import sys  # noqa: PLC0415
+
+  env = {
+    key: value
+    for key, value in os.environ.items()
+    if not key.startswith(('JAX_', 'XLA_'))
+  }
+  env['XDG_CACHE_HOME'] = str(tmp_path)
+  program = (
+    'from robel_dm.learning import agents; agents.single_thread(); '
+    'import jax; jax.jit(lambda x: x * 2 + 1)(1.0).block_until_ready()'
+  )
+  subprocess.run([sys.executable, '-c', program], env=env, check=True)
+  cache = tmp_path / 'robel_dm' / 'jax'
+  assert any(cache.iterdir()), 'no compilation was cached'

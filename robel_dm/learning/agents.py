@@ -21,6 +21,7 @@ SAC with its defaults). Every agent learns on one CPU thread.
 
 import dataclasses
 import os
+import pathlib
 from typing import Any
 
 import numpy as np
@@ -183,10 +184,24 @@ def get(name: str) -> Agent:
   return AGENTS[name]
 
 
+def jax_cache_dir() -> pathlib.Path:
+  """Where JAX keeps compiled updates between runs (`JAX_COMPILATION_CACHE_DIR`
+  if set, else `$XDG_CACHE_HOME/robel_dm/jax`, else under ~/.cache)."""
+  if os.environ.get('JAX_COMPILATION_CACHE_DIR'):
+    return pathlib.Path(os.environ['JAX_COMPILATION_CACHE_DIR'])
+  cache = os.environ.get('XDG_CACHE_HOME') or pathlib.Path.home() / '.cache'
+  return pathlib.Path(cache) / 'robel_dm' / 'jax'
+
+
 def single_thread() -> None:
-  """Pins torch and (if not started yet) JAX to one CPU thread."""
+  """Pins torch and (if not started yet) JAX to one CPU thread, and has
+  JAX reuse its compilations from earlier runs (if not started yet)."""
   os.environ.setdefault('XLA_FLAGS', _XLA_ONE_THREAD)
   os.environ.setdefault('JAX_PLATFORMS', 'cpu')  # No probing for a TPU.
+  # A run compiles some 70 small functions, each under JAX's default 1 s
+  # threshold for caching but seconds in all: cache every one.
+  os.environ.setdefault('JAX_COMPILATION_CACHE_DIR', str(jax_cache_dir()))
+  os.environ.setdefault('JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS', '0')
   import torch  # noqa: PLC0415 (heavy; only when learning)
 
   torch.set_num_threads(1)
