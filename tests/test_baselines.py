@@ -1,6 +1,7 @@
 """The baseline table: its plan, runs, records, report and Ray fan-out."""
 
 import copy
+import itertools
 import json
 import shutil
 
@@ -123,18 +124,26 @@ def test_a_run_ends_with_a_fresh_evaluation_and_a_full_record(sandbox):
   assert fixed['deterministic'] and fixed['final_episodes'] == 1
 
 
-def test_an_early_stop_must_hold_on_fresh_episodes(sandbox, monkeypatch):
-  # Every training evaluation reads 1.0 (a lucky streak), so the run stops
-  # at its second evaluation; fresh episodes of the untrained policy fail,
-  # so it trains on, stopping and checking again, to its budget.
+def _lucky_evaluations(monkeypatch, rising: bool):
+  """Every training evaluation reads success 1.0 (a lucky streak); with
+  `rising`, each one's mean score beats the last, so each is the new best
+  policy, else the first stays the best."""
   from robel_dm.learning import train  # noqa: PLC0415
 
-  real = train.evaluate_policy
+  real, count = train.evaluate_policy, itertools.count()
 
   def lucky(*args, **kwargs):
-    return real(*args, **kwargs) | {'success_rate': 1.0}
+    score = float(next(count)) if rising else 0.5
+    return real(*args, **kwargs) | {'success_rate': 1.0, 'mean_score': score}
 
   monkeypatch.setattr(train, 'evaluate_policy', lucky)
+
+
+def test_an_early_stop_must_hold_on_fresh_episodes(sandbox, monkeypatch):
+  # The lucky streak stops the run at its second evaluation; fresh episodes
+  # of the (untrained) best policy fail, so it trains on, stopping and
+  # checking each new best policy, to its budget.
+  _lucky_evaluations(monkeypatch, rising=True)
   baselines.PLAN['tasks']['dclaw/pose_random'] = {'steps': 32, 'eval_every': 8}
   run = baselines.Run('dclaw', 'pose_random', 'sac', 0)
   lines = []
@@ -152,6 +161,27 @@ def test_an_early_stop_must_hold_on_fresh_episodes(sandbox, monkeypatch):
   baselines.merge_results([short])
   shutil.rmtree(baselines.RUNS_DIR)
   assert not baselines.settled(run) and not baselines.done(run)
+
+
+def test_a_best_policy_is_checked_once(sandbox, monkeypatch):
+  # The best policy stays the first evaluated one: after its check fails,
+  # later stops do not test it again (that would only wait for a lucky
+  # reading); the run trains to its budget.
+  _lucky_evaluations(monkeypatch, rising=False)
+  baselines.PLAN['tasks']['dclaw/pose_random'] = {'steps': 32, 'eval_every': 8}
+  run = baselines.Run('dclaw', 'pose_random', 'sac', 0)
+  lines = []
+  record = baselines.train_run(run, log=lines.append)
+  assert record['env_steps'] == 32
+  assert record['confirmations'] == [
+    {
+      'env_steps': 8,
+      'success': record['confirmations'][0]['success'],
+      'seed': baselines.CONFIRM_SEED_OFFSET,
+      'policy_steps': 0,
+    }
+  ]
+  assert sum('was checked before: training on' in line for line in lines) == 2
 
 
 def test_demonstration_runs_use_the_reference_controller(sandbox):

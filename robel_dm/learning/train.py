@@ -233,7 +233,9 @@ def evaluate_policy(
   }
 
 
-def _better(row: dict, best: dict | None) -> bool:
+def better(row: dict, best: dict | None) -> bool:
+  """Whether evaluation `row` beats `best` as the run's best policy:
+  higher success rate, then higher mean score (ties keep the earlier)."""
   if best is None:
     return True
   return (row['success_rate'], row['mean_score']) > (
@@ -265,7 +267,7 @@ class Run:
         json.loads(line) for line in self.log_path.read_text().splitlines()
       ]
     for row in self.history:
-      if _better(row, self.best):
+      if better(row, self.best):
         self.best = row
     if self.history:
       self._wall = self.history[-1]['wall_time']
@@ -314,7 +316,7 @@ class Run:
       **metrics,
     }
     self._evaluating += time.perf_counter() - start
-    if _better(row, self.best):
+    if better(row, self.best):
       self.best = row
       policy.save(self.output / BEST_POLICY)
     self.history.append(row)

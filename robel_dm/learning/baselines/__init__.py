@@ -221,18 +221,51 @@ def _curve_end(run: Run) -> int | float:
   return last.get('epoch', last['env_steps'])
 
 
+def _best_policy_steps(rows: list[dict], until: int | None = None) -> int:
+  """The env steps at which the run's best policy (as `train` keeps it)
+  was evaluated, among the evaluations up to `until` steps."""
+  from robel_dm.learning import train  # noqa: PLC0415
+
+  best = None
+  for row in rows:
+    if until is not None and row['env_steps'] > until:
+      break
+    if train.better(row, best):
+      best = row
+  return best['env_steps']
+
+
 def _confirmed(run: Run, log=print) -> bool:
   """Whether the best policy of a Random-task run that stopped early holds
   the solved rate on `final_episodes_random` fresh episodes (seeded apart
   from training, its evaluations and the final evaluation, and apart from
   each earlier confirmation). Its 10-episode evaluations, always the same
   episodes, can read 0.8 twice by luck: two such stops gave 0.64 and 0.52
-  on the final 50 episodes."""
+  on the final 50 episodes. A policy is checked once: checking the same
+  one again until a reading passes would only select a lucky reading, so
+  a run whose best policy was checked trains on until it has a new one
+  (or to its budget)."""
   from robel_dm import evaluate, policies  # noqa: PLC0415
   from robel_dm.learning import train  # noqa: PLC0415
 
   path = run.directory / CONFIRMATIONS
-  earlier = len(path.read_text().splitlines()) if path.is_file() else 0
+  checked = (
+    [json.loads(line) for line in path.read_text().splitlines()]
+    if path.is_file()
+    else []
+  )
+  rows, steps = _log(run), _curve_end(run)
+  policy_steps = _best_policy_steps(rows)
+  if any(
+    _best_policy_steps(rows, check['env_steps']) == policy_steps
+    for check in checked
+  ):
+    log(
+      f'{run.name}: stopped at {steps:,} steps; its best policy (evaluated '
+      f'at {policy_steps:,}) was checked before: training on'
+    )
+    return False
+  earlier = len(checked)
   episodes = PLAN['final_episodes_random']
   seed = CONFIRM_SEED_OFFSET + run.seed * 10_000 + earlier * episodes
   results = evaluate.evaluate(
@@ -243,8 +276,13 @@ def _confirmed(run: Run, log=print) -> bool:
     seed=seed,
     task_kwargs=run.task_kwargs,
   )
-  steps, rate = _curve_end(run), results['success_rate']
-  line = {'env_steps': steps, 'success': rate, 'seed': seed}
+  rate = results['success_rate']
+  line = {
+    'env_steps': steps,
+    'success': rate,
+    'seed': seed,
+    'policy_steps': policy_steps,
+  }
   with open(path, 'a') as file:
     file.write(json.dumps(line) + '\n')
   held = rate >= PLAN['solved']
