@@ -124,10 +124,11 @@ def test_a_run_ends_with_a_fresh_evaluation_and_a_full_record(sandbox):
   assert fixed['deterministic'] and fixed['final_episodes'] == 1
 
 
-def _lucky_evaluations(monkeypatch, rising: bool):
-  """Every training evaluation reads success 1.0 (a lucky streak); with
+def _lucky_run(monkeypatch, rising: bool):
+  """Trains Pose Random's seed-0 run (32 steps, evaluated every 8) where
+  every training evaluation reads success 1.0 (a lucky streak); with
   `rising`, each one's mean score beats the last, so each is the new best
-  policy, else the first stays the best."""
+  policy, else the first stays the best. Returns (run, record, log lines)."""
   from robel_dm.learning import train  # noqa: PLC0415
 
   real, count = train.evaluate_policy, itertools.count()
@@ -137,17 +138,17 @@ def _lucky_evaluations(monkeypatch, rising: bool):
     return real(*args, **kwargs) | {'success_rate': 1.0, 'mean_score': score}
 
   monkeypatch.setattr(train, 'evaluate_policy', lucky)
+  baselines.PLAN['tasks']['dclaw/pose_random'] = {'steps': 32, 'eval_every': 8}
+  run = baselines.Run('dclaw', 'pose_random', 'sac', 0)
+  lines = []
+  return run, baselines.train_run(run, log=lines.append), lines
 
 
 def test_an_early_stop_must_hold_on_fresh_episodes(sandbox, monkeypatch):
   # The lucky streak stops the run at its second evaluation; fresh episodes
   # of the (untrained) best policy fail, so it trains on, stopping and
   # checking each new best policy, to its budget.
-  _lucky_evaluations(monkeypatch, rising=True)
-  baselines.PLAN['tasks']['dclaw/pose_random'] = {'steps': 32, 'eval_every': 8}
-  run = baselines.Run('dclaw', 'pose_random', 'sac', 0)
-  lines = []
-  record = baselines.train_run(run, log=lines.append)
+  run, record, lines = _lucky_run(monkeypatch, rising=True)
   assert record['env_steps'] == 32 and record['success'] < 0.8
   assert [c['env_steps'] for c in record['confirmations']] == [8, 16, 24]
   assert sum('training on' in line for line in lines) == 3
@@ -167,11 +168,7 @@ def test_a_best_policy_is_checked_once(sandbox, monkeypatch):
   # The best policy stays the first evaluated one: after its check fails,
   # later stops do not test it again (that would only wait for a lucky
   # reading); the run trains to its budget.
-  _lucky_evaluations(monkeypatch, rising=False)
-  baselines.PLAN['tasks']['dclaw/pose_random'] = {'steps': 32, 'eval_every': 8}
-  run = baselines.Run('dclaw', 'pose_random', 'sac', 0)
-  lines = []
-  record = baselines.train_run(run, log=lines.append)
+  _, record, lines = _lucky_run(monkeypatch, rising=False)
   assert record['env_steps'] == 32
   assert record['confirmations'] == [
     {
