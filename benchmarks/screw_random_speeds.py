@@ -5,9 +5,9 @@ r"""Screw Random's success by goal speed: how fast can a policy turn the valve?
 
 Runs a trained Screw policy (its task arguments, e.g. extra observation
 keys, come from its metadata) on `--episodes` episodes of dclaw/screw_random
-from seeds --first_seed on, and prints, per
-band and direction of the episode's goal velocity v (ROBEL draws v uniformly
-in [-0.75, 0.75] rad/s), the share of episodes in the band, the success rate
+from seed `--first_seed` on, and prints, per band and direction of the
+episode's goal velocity v (ROBEL draws v uniformly in [-0.75, 0.75] rad/s),
+the share of episodes in the band, the success rate
 (mean |angle error| below 0.2 rad), the mean |angle error|, and the valve's
 mean speed over the episode (net turn over 8 s, in the goal's direction),
 for goals turning each way. The default first seed, 1,000,000, is where

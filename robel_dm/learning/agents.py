@@ -184,11 +184,9 @@ def get(name: str) -> Agent:
   return AGENTS[name]
 
 
-def jax_cache_dir() -> pathlib.Path:
-  """Where JAX keeps compiled updates between runs (`JAX_COMPILATION_CACHE_DIR`
-  if set, else `$XDG_CACHE_HOME/robel_dm/jax`, else under ~/.cache)."""
-  if os.environ.get('JAX_COMPILATION_CACHE_DIR'):
-    return pathlib.Path(os.environ['JAX_COMPILATION_CACHE_DIR'])
+def _default_jax_cache() -> pathlib.Path:
+  """`$XDG_CACHE_HOME/robel_dm/jax`, else under ~/.cache: where JAX keeps
+  compiled updates between runs unless `JAX_COMPILATION_CACHE_DIR` says."""
   cache = os.environ.get('XDG_CACHE_HOME') or pathlib.Path.home() / '.cache'
   return pathlib.Path(cache) / 'robel_dm' / 'jax'
 
@@ -200,7 +198,7 @@ def single_thread() -> None:
   os.environ.setdefault('JAX_PLATFORMS', 'cpu')  # No probing for a TPU.
   # A run compiles some 70 small functions, each under JAX's default 1 s
   # threshold for caching but seconds in all: cache every one.
-  os.environ.setdefault('JAX_COMPILATION_CACHE_DIR', str(jax_cache_dir()))
+  os.environ.setdefault('JAX_COMPILATION_CACHE_DIR', str(_default_jax_cache()))
   os.environ.setdefault('JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS', '0')
   import torch  # noqa: PLC0415 (heavy; only when learning)
 

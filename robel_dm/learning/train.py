@@ -233,15 +233,23 @@ def evaluate_policy(
   }
 
 
-def better(row: dict, best: dict | None) -> bool:
-  """Whether evaluation `row` beats `best` as the run's best policy:
-  higher success rate, then higher mean score (ties keep the earlier)."""
+def _better(row: dict, best: dict | None) -> bool:
   if best is None:
     return True
   return (row['success_rate'], row['mean_score']) > (
     best['success_rate'],
     best['mean_score'],
   )
+
+
+def best_of(rows: list[dict]) -> dict | None:
+  """The evaluation whose policy a run keeps as its best (higher success
+  rate, then higher mean score; ties keep the earlier), or None."""
+  best = None
+  for row in rows:
+    if _better(row, best):
+      best = row
+  return best
 
 
 class Run:
@@ -266,9 +274,7 @@ class Run:
       self.history = [
         json.loads(line) for line in self.log_path.read_text().splitlines()
       ]
-    for row in self.history:
-      if better(row, self.best):
-        self.best = row
+    self.best = best_of(self.history)
     if self.history:
       self._wall = self.history[-1]['wall_time']
       self._cpu = self.history[-1].get('cpu_time', 0.0)
@@ -316,7 +322,7 @@ class Run:
       **metrics,
     }
     self._evaluating += time.perf_counter() - start
-    if better(row, self.best):
+    if _better(row, self.best):
       self.best = row
       policy.save(self.output / BEST_POLICY)
     self.history.append(row)

@@ -216,22 +216,19 @@ def done(run: Run) -> bool:
   return settled(run)
 
 
-def _curve_end(run: Run) -> int | float:
-  last = _log(run)[-1]
+def _curve_end(run: Run, rows: list[dict] | None = None) -> int | float:
+  """The last evaluation's env steps (epochs for bc), from the run's log
+  or from its `rows` if already read."""
+  last = (rows or _log(run))[-1]
   return last.get('epoch', last['env_steps'])
 
 
-def _best_policy_steps(rows: list[dict], until: int | None = None) -> int:
+def _best_policy_steps(rows: list[dict], until: int | float) -> int:
   """The env steps at which the run's best policy (as `train` keeps it)
   was evaluated, among the evaluations up to `until` steps."""
   from robel_dm.learning import train  # noqa: PLC0415
 
-  best = None
-  for row in rows:
-    if until is not None and row['env_steps'] > until:
-      break
-    if train.better(row, best):
-      best = row
+  best = train.best_of([row for row in rows if row['env_steps'] <= until])
   return best['env_steps']
 
 
@@ -254,8 +251,9 @@ def _confirmed(run: Run, log=print) -> bool:
     if path.is_file()
     else []
   )
-  rows, steps = _log(run), _curve_end(run)
-  policy_steps = _best_policy_steps(rows)
+  rows = _log(run)
+  steps = _curve_end(run, rows)
+  policy_steps = _best_policy_steps(rows, steps)
   if any(
     _best_policy_steps(rows, check['env_steps']) == policy_steps
     for check in checked
