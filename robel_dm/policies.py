@@ -208,10 +208,11 @@ class NumpyPolicy:
     self.any_variant = False
 
   def __repr__(self) -> str:
+    # Recordings store this: it names the trained run, seed included.
     meta = self.metadata
     return (
-      f'NumpyPolicy({meta.get("algo", "?")} on '
-      f'{meta.get("domain")}/{meta.get("task")})'
+      f'NumpyPolicy({meta.get("algo", "?")} seed {meta.get("seed", "?")} '
+      f'on {meta.get("domain")}/{meta.get("task")})'
     )
 
   @property

@@ -5,6 +5,7 @@ import itertools
 import json
 import shutil
 
+import numpy as np
 import pytest
 
 pytest.importorskip('sbx')
@@ -215,6 +216,48 @@ def test_a_shipped_policy_demonstrates_in_a_checkout_without_runs(
   lines = []
   assert baselines.train_run(run, log=lines.append) is not None
   assert 'demonstrations of dclaw/turn_fixed by' in lines[0]
+
+
+def test_the_best_solved_policy_at_hand_is_shipped(sandbox):
+  def row(algo, seed, success, score):
+    task = {'domain': 'dclaw', 'task': 'pose_random', 'task_kwargs': {}}
+    return task | {'algo': algo, 'seed': seed, 'success': success,
+                   'score': score}  # fmt: skip
+
+  def policy(path, algo, seed):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, metadata=json.dumps({'algo': algo, 'seed': seed}))
+
+  baselines.RESULTS.parent.mkdir(parents=True)
+  baselines.RESULTS.write_text(json.dumps([
+    row('sac', 0, 0.9, 0.5), row('trpo', 0, 0.9, 0.6),
+    row('sac', 1, 0.84, 0.9), row('bc', 0, 0.7, 0.99),
+  ]))  # fmt: skip
+  shipped = baselines.POLICIES / 'dclaw_pose_random.npz'
+
+  def run(algo, seed):
+    return baselines.Run('dclaw', 'pose_random', algo, seed).directory
+
+  # Only unsolved and lesser rows have their runs here: the shipped policy
+  # (the best row's whose policy is at hand) stays.
+  policy(run('bc', 0) / 'policy_best.npz', 'bc', 0)
+  policy(run('sac', 1) / 'policy_best.npz', 'sac', 1)
+  policy(shipped, 'sac', 0)
+  assert baselines.best_policy('dclaw', 'pose_random') == shipped
+  assert report.ship(json.loads(baselines.RESULTS.read_text())) == [
+    'dclaw/pose_random (sac, seed 0)'
+  ]
+  # A better row's run replaces it (equal success: the higher score).
+  policy(run('trpo', 0) / 'policy_best.npz', 'trpo', 0)
+  assert report.ship(json.loads(baselines.RESULTS.read_text())) == [
+    'dclaw/pose_random (trpo, seed 0)'
+  ]
+  # A shipped policy whose row is no longer solved gives way too.
+  policy(shipped, 'sac', 2)
+  shutil.rmtree(run('trpo', 0))
+  assert baselines.best_policy('dclaw', 'pose_random') == (
+    run('sac', 1) / 'policy_best.npz'
+  )
 
 
 def test_the_report_is_derived_from_the_records(sandbox):

@@ -4,15 +4,18 @@ The adapter tests need Gymnasium; training and the numpy-equals-torch
 comparison need the `learn` extra (Stable-Baselines3 and torch).
 """
 
+import json
 import pathlib
 
 import numpy as np
 import pytest
+from scipy import stats
 
 gymnasium = pytest.importorskip('gymnasium')
 from gymnasium.utils import env_checker  # noqa: E402
 
 from robel_dm import assets, evaluate, policies, suite  # noqa: E402
+from robel_dm.learning import baselines  # noqa: E402
 from robel_dm.learning import gym as robel_gym  # noqa: E402
 
 _IDS = robel_gym.env_ids()
@@ -141,6 +144,7 @@ def _tiny_policy(tmp_path, task='pose_fixed', keys=None) -> pathlib.Path:
       'task_kwargs': {},
       'observation_keys': list(keys),
       'algo': 'sac',
+      'seed': 3,
     },  # fmt: skip
   )
   path = tmp_path / 'policy.npz'
@@ -151,6 +155,8 @@ def _tiny_policy(tmp_path, task='pose_fixed', keys=None) -> pathlib.Path:
 def test_numpy_policy_round_trips_and_evaluates(tmp_path):
   path = _tiny_policy(tmp_path)
   policy = policies.load(path)
+  # Recordings name their policy by this: the run, seed included.
+  assert repr(policy) == 'NumpyPolicy(sac seed 3 on dclaw/pose_fixed)'
   results = evaluate.evaluate('dclaw', 'pose_fixed', 2, policy=str(path))
   assert results['episodes'] == 2
   env = suite.load('dclaw', 'pose_fixed', seed=0)
@@ -208,22 +214,54 @@ _SHIPPED = sorted(
 )
 
 
-def test_baselines_are_shipped_for_solved_tasks():
-  assert ('dclaw', 'pose_fixed') in _SHIPPED
-  assert ('dkitty', 'stand_fixed') in _SHIPPED
+def _shipped_row(domain: str, task: str) -> dict:
+  """The table's row that a shipped policy's metadata names."""
+  path = assets.baselines_dir() / f'{domain}_{task}.npz'
+  metadata = json.loads(str(np.load(path)['metadata']))
+  rows = json.loads(baselines.RESULTS.read_text())
+  (row,) = (
+    row
+    for row in rows
+    if (row['domain'], row['task'], row['algo'], row['seed'])
+    == (domain, task, metadata['algo'], metadata['seed'])
+    and row['task_kwargs'] == metadata['task_kwargs']
+  )
+  return row
+
+
+def test_every_solved_task_ships_a_policy():
+  rows = json.loads(baselines.RESULTS.read_text())
+  solved = {
+    (row['domain'], row['task'])
+    for row in rows
+    if not row['task_kwargs'] and row['success'] >= baselines.PLAN['solved']
+  }
+  assert set(_SHIPPED) == solved
 
 
 @pytest.mark.parametrize(
   'shipped', _SHIPPED, ids=['/'.join(t) for t in _SHIPPED]
 )
-def test_shipped_baselines_solve_their_tasks(shipped):
+def test_shipped_baselines_reproduce_their_rows(shipped):
   # From seeds neither training nor the table's evaluations used. A Fixed
   # task's episodes are all the same one: one episode is the whole test.
-  fixed = shipped in suite.FIXED
+  # A Random task's policy gets as many fresh episodes as its row's final
+  # evaluation, and fails if they succeed significantly less often than
+  # the row's (one-sided Fisher exact test at the 1% level).
+  row = _shipped_row(*shipped)
+  assert row['success'] >= baselines.PLAN['solved']
+  if shipped in suite.FIXED:
+    results = evaluate.evaluate(*shipped, 1, policy='baseline', seed=5_000_000)
+    assert results['success_rate'] == 1.0
+    return
+  episodes = row['final_episodes']
   results = evaluate.evaluate(
-    *shipped, 1 if fixed else 10, policy='baseline', seed=5_000_000
+    *shipped, episodes, policy='baseline', seed=5_000_000
   )
-  assert results['success_rate'] >= (1.0 if fixed else 0.8)
+  fresh = round(results['success_rate'] * episodes)
+  recorded = round(row['success'] * episodes)
+  table = [[fresh, episodes - fresh], [recorded, episodes - recorded]]
+  assert stats.fisher_exact(table, alternative='less').pvalue >= 0.01
 
 
 def test_the_pose_baseline_runs_on_the_virtual_bus(monkeypatch):

@@ -29,6 +29,8 @@ import subprocess
 import time
 from typing import Any
 
+import numpy as np
+
 from robel_dm import suite
 
 ROOT = pathlib.Path(__file__).resolve().parents[3]
@@ -328,24 +330,45 @@ def demonstrations(run: Run, log=print) -> str | None:
   return str(directory)
 
 
+def shipped_metadata(domain: str, task: str) -> dict | None:
+  """The metadata of the task's policy in policies/, if one is there."""
+  path = POLICIES / f'{domain}_{task}.npz'
+  if not path.is_file():
+    return None
+  with np.load(path) as arrays:
+    return json.loads(str(arrays['metadata']))
+
+
 def best_policy(domain: str, task: str) -> pathlib.Path | None:
-  """The best solved policy of the task among finished runs (valve3); in a
-  checkout without those runs, the shipped one (the same choice, made when
-  the table was last reported)."""
-  best, best_key = None, None
-  for run in runs():
-    if (run.domain, run.task, run.valve4) != (domain, task, False):
-      continue
-    if not finished(run):
-      continue
-    final = json.loads((run.directory / FINAL).read_text())
-    key = (final['success'], final['score'])
-    if final['success'] >= PLAN['solved'] and (best is None or key > best_key):
-      best, best_key = run.directory / 'policy_best.npz', key
+  """The policy of the task's best solved row (valve3; highest final
+  success, then mean score) that is at hand: its run's best policy, or the
+  shipped one if it is that row's. Run folders are not committed, so in a
+  fresh clone the shipped policy stands until a better row's run is made.
+  Without records, the shipped policy."""
+  rows = json.loads(RESULTS.read_text()) if RESULTS.is_file() else []
+  solved = sorted(
+    (
+      row
+      for row in rows
+      if (row['domain'], row['task']) == (domain, task)
+      and not row['task_kwargs']
+      and row['success'] >= PLAN['solved']
+    ),
+    key=lambda row: (row['success'], row['score']),
+    reverse=True,
+  )
   shipped = POLICIES / f'{domain}_{task}.npz'
-  if best is None and shipped.is_file():
-    return shipped
-  return best
+  metadata = shipped_metadata(domain, task)
+  for row in solved:
+    source = Run(domain, task, row['algo'], row['seed']).directory
+    if (source / 'policy_best.npz').is_file():
+      return source / 'policy_best.npz'
+    if metadata and (metadata['algo'], metadata['seed']) == (
+      row['algo'],
+      row['seed'],
+    ):
+      return shipped
+  return shipped if metadata and not solved else None
 
 
 def train_run(run: Run, log=print) -> dict | None:

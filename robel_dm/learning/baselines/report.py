@@ -201,23 +201,20 @@ def figures(rows: list[dict]) -> list[str]:
 
 
 def ship(rows: list[dict]) -> list[str]:
-  """Copies the best solved policy of each task (valve3, default agent or
-  any) into policies/, which `--policy=baseline` runs."""
-  best = {}
-  for row in rows:
-    if row['task_kwargs'] or row['success'] < baselines.PLAN['solved']:
-      continue
-    key = (row['domain'], row['task'])
-    rank = (row['success'], row['score'])
-    if key not in best or rank > best[key][0]:
-      best[key] = (rank, row)
+  """Copies each solved task's best policy at hand (`baselines.best_policy`)
+  into policies/, which `--policy=baseline` runs; names what is shipped."""
   shipped = []
-  for (domain, task), (_, row) in sorted(best.items()):
-    run = baselines.Run(domain, task, row['algo'], row['seed'])
-    source = run.directory / 'policy_best.npz'
-    if source.is_file():
-      shutil.copy(source, baselines.POLICIES / f'{domain}_{task}.npz')
-      shipped.append(f'{domain}/{task} ({row["algo"]}, seed {row["seed"]})')
+  for domain, task in sorted(
+    {(r['domain'], r['task']) for r in rows if not r['task_kwargs']}
+  ):
+    source = baselines.best_policy(domain, task)
+    if source is None:
+      continue
+    target = baselines.POLICIES / f'{domain}_{task}.npz'
+    if source != target:
+      shutil.copy(source, target)
+    made = baselines.shipped_metadata(domain, task)
+    shipped.append(f'{domain}/{task} ({made["algo"]}, seed {made["seed"]})')
   return shipped
 
 
