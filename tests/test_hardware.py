@@ -7,6 +7,7 @@ virtual bus whose motors a MuJoCo simulation drives in simulated time.
 
 import json
 import math
+import time
 
 import numpy as np
 import pytest
@@ -298,7 +299,35 @@ def test_a_motor_that_disappears_is_named_and_the_rest_released(
     env.close()
 
 
-def test_one_corrupted_or_lost_reply_is_retried_transparently(short_timeouts):
+def test_a_busy_virtual_bus_is_waited_for_and_a_silent_motor_still_named(
+  monkeypatch,
+):
+  # Each packet takes the simulated bus 0.1 s, three times the SDK's reply
+  # deadline, as on a machine busy with other work: its replies come late
+  # but come, and a motor that does not answer is still the one named.
+  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  bus = env.virtual_bus
+  try:
+    env.reset()
+    handle = bus.handle
+
+    def slow(packet, baud_rate):
+      time.sleep(0.1)
+      return handle(packet, baud_rate)
+
+    monkeypatch.setattr(bus, 'handle', slow)
+    assert env.step(np.zeros(9)).mid()
+    bus.faults.set_absent(31)
+    with pytest.raises(dynamixel.MissingMotorError) as error:
+      env.step(np.zeros(9))
+    assert error.value.motor_ids == (31,)
+  finally:
+    env.close()
+
+
+def test_one_corrupted_or_lost_reply_is_retried_transparently(
+  lockstep, short_timeouts
+):
   env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
   bus = env.virtual_bus
   try:
@@ -313,6 +342,7 @@ def test_one_corrupted_or_lost_reply_is_retried_transparently(short_timeouts):
 
 
 def test_persistent_corruption_raises_instead_of_returning_stale_data(
+  lockstep,
   short_timeouts,
 ):
   env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
@@ -327,7 +357,7 @@ def test_persistent_corruption_raises_instead_of_returning_stale_data(
     env.close()
 
 
-def test_missing_motor_at_connect_is_named(short_timeouts):
+def test_missing_motor_at_connect_is_named(lockstep, short_timeouts):
   config = config_lib.default('dclaw')
   servos = virtual.make_servos(
     [i for i in virtual.robot_motor_ids(config) if i != 22]

@@ -113,9 +113,19 @@ def _wait_for_line(stream, timeout: float) -> str:
   return stream.readline().strip()
 
 
+def _wait_until_stepping(child: subprocess.Popen) -> None:
+  """Waits for a `_STEP_FOREVER` child to step; fails with its stderr."""
+  line = _wait_for_line(child.stdout, _STARTUP_TIMEOUT_S)
+  if line != 'stepping':
+    child.kill()
+    assert line == 'stepping', child.communicate(timeout=60)[1]
+
+
 @pytest.fixture
-def standalone_bus():
-  """A D'Claw's motors on a virtual bus in its own process; its path."""
+def standalone_bus(monkeypatch):
+  """A D'Claw's motors on a virtual bus in its own process; its path.
+  This process reads it back with a reply deadline of about 1 s."""
+  monkeypatch.setattr(port_handler, 'LATENCY_TIMER', 500)
   process = subprocess.Popen(
     preexec_fn=child_signals.default,
     args=[sys.executable, '-m', 'robel_dm.tools.virtual_bus', '--robot=dclaw',
@@ -158,7 +168,11 @@ def _child(device_path: str, body: str) -> subprocess.Popen:
   """Runs `body` in a child Python with DEVICE set; stdout is a pipe."""
   code = (
     'import gc, json, numpy as np\n'
+    'import dynamixel_sdk\n'
     'from robel_dm import suite\n'
+    # A reply deadline of about 1 s: the bus is another process, and on a
+    # loaded machine its healthy replies can miss the SDK's ~34 ms.
+    'dynamixel_sdk.port_handler.LATENCY_TIMER = 500\n'
     f'DEVICE = {device_path!r}\n' + textwrap.dedent(body)
   )
   return subprocess.Popen(
@@ -238,7 +252,7 @@ def test_garbage_collected_environment_releases_its_motors(standalone_bus):
 def test_hangup_and_quit_release_the_motors(standalone_bus, signum):
   device_path, _ = standalone_bus
   child = _child(device_path, _STEP_FOREVER)
-  assert _wait_for_line(child.stdout, _STARTUP_TIMEOUT_S) == 'stepping'
+  _wait_until_stepping(child)
   time.sleep(0.3)  # Mid-episode.
   child.send_signal(signum)
   assert _torque_on_after(child, device_path) == []
@@ -251,7 +265,7 @@ def test_a_burst_of_ctrl_c_cannot_interrupt_the_release(standalone_bus):
   device_path, _ = standalone_bus
   for _ in range(3):
     child = _child(device_path, _STEP_FOREVER)
-    assert _wait_for_line(child.stdout, _STARTUP_TIMEOUT_S) == 'stepping'
+    _wait_until_stepping(child)
     time.sleep(0.2)
     deadline = time.monotonic() + 20
     while child.poll() is None and time.monotonic() < deadline:
@@ -283,7 +297,7 @@ def test_every_robot_is_released_whatever_another_release_raises(monkeypatch):
 
 
 def test_after_a_fault_the_environment_refuses_to_step_until_reset(
-  short_timeouts, claw
+  lockstep, short_timeouts, claw
 ):
   env, bus = claw, claw.virtual_bus
   bus.faults.set_absent(31)
@@ -390,7 +404,9 @@ def test_a_late_reply_is_not_taken_for_a_motors_state(claw, monkeypatch):
   claw.step(np.zeros(9))
 
 
-def test_a_motor_with_a_bad_checksum_is_not_called_silent(short_timeouts, claw):
+def test_a_motor_with_a_bad_checksum_is_not_called_silent(
+  lockstep, short_timeouts, claw
+):
   env, bus = claw, claw.virtual_bus
   bus.faults.corrupt_next(31, count=1000)
   with pytest.raises(dynamixel.DynamixelError, match='corrupted') as error:
@@ -435,7 +451,7 @@ def test_a_second_process_on_the_same_port_is_refused(standalone_bus):
   device_path, _ = standalone_bus
   child = _child(device_path, _STEP_FOREVER)
   try:
-    assert _wait_for_line(child.stdout, _STARTUP_TIMEOUT_S) == 'stepping'
+    _wait_until_stepping(child)
     client = dynamixel.DynamixelClient(device_path, _CLAW_IDS)
     with pytest.raises(dynamixel.PortBusyError, match=rf'pid {child.pid}'):
       client.connect()

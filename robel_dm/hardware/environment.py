@@ -231,7 +231,11 @@ def make_environment(
     reset_procedure = resets.make(reset, robot_config, domain, torso_source)
   motor_ids = [m.id for m in robot_config.joints + tuple(auxiliary)]
   client = dynamixel.DynamixelClient(
-    device_path, motor_ids, baud_rate=robot_config.baud_rate
+    device_path,
+    motor_ids,
+    baud_rate=robot_config.baud_rate,
+    # The simulated bus answers from a thread here: wait for it when busy.
+    bus_answered=(lambda: server.stats['bytes_in']) if virtual else None,
   )
   try:
     client.connect()

@@ -23,6 +23,7 @@ another thread (an exit signal) never interleaves its packets with a
 control step's, and once the client is closed every transaction raises.
 """
 
+from collections.abc import Callable
 import logging
 import struct
 import threading
@@ -65,14 +66,56 @@ def _require_sdk():
     )
 
 
+# How long a reply from a bus that has not yet answered every byte sent to
+# it is waited for (see `DynamixelClient`'s `bus_answered`), seconds: a hang
+# guard for a bus whose thread stopped.
+_BEHIND_BUS_LIMIT_S = 10.0
+
+
 def _port_handler_class():
-  """The SDK's PortHandler, extended with 4.5 Mbps (missing from its list)."""
+  """The SDK's PortHandler, extended with 4.5 Mbps (missing from its list)
+  and, for a bus that says how much of its input it has answered, replies
+  that come late because the machine is busy."""
 
   class PortHandler(sdk.PortHandler):
+    # Bytes of this port's output the bus has answered so far; None for a
+    # real bus, whose replies are due within the SDK's deadline.
+    answered: Callable[[], int] | None = None
+    written = 0
+    _started = 0.0
+
     def getCFlagBaud(self, baudrate):  # noqa: N802 (SDK method name)
       if baudrate == 4_500_000:
         return baudrate
       return super().getCFlagBaud(baudrate)
+
+    def writePort(self, packet):  # noqa: N802 (SDK method name)
+      written = super().writePort(packet)
+      self.written += written
+      return written
+
+    def setPacketTimeout(self, packet_length):  # noqa: N802
+      super().setPacketTimeout(packet_length)
+      self._started = self.packet_start_time
+
+    def setPacketTimeoutMillis(self, msec):  # noqa: N802
+      super().setPacketTimeoutMillis(msec)
+      self._started = self.packet_start_time
+
+    def isPacketTimeout(self):  # noqa: N802
+      if not super().isPacketTimeout():
+        return False
+      if self.answered is None:
+        return True
+      behind = self.answered() < self.written or self.ser.in_waiting > 0
+      waited_s = (self.getCurrentTime() - self._started) / 1000.0
+      if behind and waited_s < _BEHIND_BUS_LIMIT_S:
+        # The bus has not processed the request yet (or its reply is
+        # still to be read): look again in a millisecond.
+        self.packet_start_time = self.getCurrentTime()
+        self.packet_timeout = 1.0
+        return False
+      return True
 
   return PortHandler
 
@@ -90,6 +133,7 @@ class DynamixelClient(register_access.RegisterAccess):
     motor_ids,
     baud_rate: int = table.DEFAULT_BAUD_RATE,
     retries: int = 2,
+    bus_answered: Callable[[], int] | None = None,
   ):
     """Initializes the client (no I/O until `connect`).
 
@@ -98,6 +142,12 @@ class DynamixelClient(register_access.RegisterAccess):
       motor_ids: the motors' Dynamixel IDs.
       baud_rate: bits per second (1 Mbps default; up to 4.5 Mbps).
       retries: how often a failed transaction is repeated before giving up.
+      bus_answered: for a simulated bus only: how many bytes sent to it it
+        has answered, all told. A reply is then waited for until the bus has
+        answered the request (a busy machine delays a simulated bus's
+        replies, never a motor's), and only a reply the bus did not send
+        times out, after the SDK's usual deadline. None (a real bus): every
+        reply is due within that deadline.
 
     Raises:
       ValueError: for repeated or out-of-range IDs, or a bad baud rate.
@@ -117,6 +167,7 @@ class DynamixelClient(register_access.RegisterAccess):
     self._ids = ids
     self._baud_rate = baud_rate
     self._retries = max(0, int(retries))
+    self._bus_answered = bus_answered
     self._port = None
     self._packets = None
     self._models: dict[int, int] = {}
@@ -171,6 +222,9 @@ class DynamixelClient(register_access.RegisterAccess):
     if shutdown.exit_signal() is not None:
       raise self._not_connected()
     port = _port_handler_class()(self._device_path)
+    if self._bus_answered is not None:
+      answered, before = self._bus_answered, self._bus_answered()
+      port.answered = lambda: answered() - before
     try:
       opened = port.openPort()
     except Exception as error:  # pyserial raises SerialException/OSError.
