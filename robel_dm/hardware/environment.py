@@ -235,7 +235,12 @@ def make_environment(
     motor_ids,
     baud_rate=robot_config.baud_rate,
     # The simulated bus answers from a thread here: wait for it when busy.
-    bus_answered=(lambda: server.stats['bytes_in']) if virtual else None,
+    # (bytes_in is counted after the reply is sent, so read it first.)
+    bus_progress=(
+      (lambda: (server.stats['bytes_in'], server.stats['bytes_out']))
+      if virtual
+      else None
+    ),
   )
   try:
     client.connect()

@@ -66,22 +66,23 @@ def _require_sdk():
     )
 
 
-# How long a reply from a bus that has not yet answered every byte sent to
-# it is waited for (see `DynamixelClient`'s `bus_answered`), seconds: a hang
-# guard for a bus whose thread stopped.
+# How long a reply from a bus that is behind (see `DynamixelClient`'s
+# `bus_progress`) is waited for, seconds: a hang guard for a bus whose
+# thread stopped.
 _BEHIND_BUS_LIMIT_S = 10.0
 
 
 def _port_handler_class():
   """The SDK's PortHandler, extended with 4.5 Mbps (missing from its list)
-  and, for a bus that says how much of its input it has answered, replies
-  that come late because the machine is busy."""
+  and, for a bus that reports its progress, replies that come late because
+  the machine is busy."""
 
   class PortHandler(sdk.PortHandler):
-    # Bytes of this port's output the bus has answered so far; None for a
-    # real bus, whose replies are due within the SDK's deadline.
-    answered: Callable[[], int] | None = None
-    written = 0
+    # Bytes the bus has answered of this port's output, and bytes it has
+    # sent to it; None for a real bus, whose replies are due within the
+    # SDK's deadline.
+    progress: Callable[[], tuple[int, int]] | None = None
+    written = read = 0
     _started = 0.0
 
     def getCFlagBaud(self, baudrate):  # noqa: N802 (SDK method name)
@@ -94,6 +95,11 @@ def _port_handler_class():
       self.written += written
       return written
 
+    def readPort(self, length):  # noqa: N802 (SDK method name)
+      data = super().readPort(length)
+      self.read += len(data)
+      return data
+
     def setPacketTimeout(self, packet_length):  # noqa: N802
       super().setPacketTimeout(packet_length)
       self._started = self.packet_start_time
@@ -105,15 +111,16 @@ def _port_handler_class():
     def isPacketTimeout(self):  # noqa: N802
       if not super().isPacketTimeout():
         return False
-      if self.answered is None:
+      if self.progress is None:
         return True
-      behind = self.answered() < self.written or self.ser.in_waiting > 0
+      # Behind: a request not yet answered, or a reply not yet read (a pty
+      # passes written bytes on asynchronously).
+      answered, sent = self.progress()
+      behind = answered < self.written or sent > self.read
       waited_s = (self.getCurrentTime() - self._started) / 1000.0
       if behind and waited_s < _BEHIND_BUS_LIMIT_S:
-        # The bus has not processed the request yet (or its reply is
-        # still to be read): look again in a millisecond.
         self.packet_start_time = self.getCurrentTime()
-        self.packet_timeout = 1.0
+        self.packet_timeout = 1.0  # Look again in a millisecond.
         return False
       return True
 
@@ -133,7 +140,7 @@ class DynamixelClient(register_access.RegisterAccess):
     motor_ids,
     baud_rate: int = table.DEFAULT_BAUD_RATE,
     retries: int = 2,
-    bus_answered: Callable[[], int] | None = None,
+    bus_progress: Callable[[], tuple[int, int]] | None = None,
   ):
     """Initializes the client (no I/O until `connect`).
 
@@ -142,12 +149,13 @@ class DynamixelClient(register_access.RegisterAccess):
       motor_ids: the motors' Dynamixel IDs.
       baud_rate: bits per second (1 Mbps default; up to 4.5 Mbps).
       retries: how often a failed transaction is repeated before giving up.
-      bus_answered: for a simulated bus only: how many bytes sent to it it
-        has answered, all told. A reply is then waited for until the bus has
-        answered the request (a busy machine delays a simulated bus's
-        replies, never a motor's), and only a reply the bus did not send
-        times out, after the SDK's usual deadline. None (a real bus): every
-        reply is due within that deadline.
+      bus_progress: for a simulated bus only: how many bytes sent to it it
+        has answered and how many it has sent, all told. A reply is then
+        waited for while the bus has a request unanswered or a reply
+        unread (a busy machine delays a simulated bus's replies, never a
+        motor's), and only a reply the bus did not send times out, after
+        the SDK's usual deadline. None (a real bus): every reply is due
+        within that deadline.
 
     Raises:
       ValueError: for repeated or out-of-range IDs, or a bad baud rate.
@@ -167,7 +175,7 @@ class DynamixelClient(register_access.RegisterAccess):
     self._ids = ids
     self._baud_rate = baud_rate
     self._retries = max(0, int(retries))
-    self._bus_answered = bus_answered
+    self._bus_progress = bus_progress
     self._port = None
     self._packets = None
     self._models: dict[int, int] = {}
@@ -222,9 +230,14 @@ class DynamixelClient(register_access.RegisterAccess):
     if shutdown.exit_signal() is not None:
       raise self._not_connected()
     port = _port_handler_class()(self._device_path)
-    if self._bus_answered is not None:
-      answered, before = self._bus_answered, self._bus_answered()
-      port.answered = lambda: answered() - before
+    if self._bus_progress is not None:
+      progress, (answered, sent) = self._bus_progress, self._bus_progress()
+
+      def since_connect() -> tuple[int, int]:
+        now_answered, now_sent = progress()
+        return now_answered - answered, now_sent - sent
+
+      port.progress = since_connect
     try:
       opened = port.openPort()
     except Exception as error:  # pyserial raises SerialException/OSError.
