@@ -66,67 +66,6 @@ def _require_sdk():
     )
 
 
-# How long a reply from a bus that is behind (see `DynamixelClient`'s
-# `bus_progress`) is waited for, seconds: a hang guard for a bus whose
-# thread stopped.
-_BEHIND_BUS_LIMIT_S = 10.0
-
-
-def _port_handler_class():
-  """The SDK's PortHandler, extended with 4.5 Mbps (missing from its list)
-  and, for a bus that reports its progress, replies that come late because
-  the machine is busy."""
-
-  class PortHandler(sdk.PortHandler):
-    # Bytes the bus has answered of this port's output, and bytes it has
-    # sent to it; None for a real bus, whose replies are due within the
-    # SDK's deadline.
-    progress: Callable[[], tuple[int, int]] | None = None
-    written = read = 0
-    _started = 0.0
-
-    def getCFlagBaud(self, baudrate):  # noqa: N802 (SDK method name)
-      if baudrate == 4_500_000:
-        return baudrate
-      return super().getCFlagBaud(baudrate)
-
-    def writePort(self, packet):  # noqa: N802 (SDK method name)
-      written = super().writePort(packet)
-      self.written += written
-      return written
-
-    def readPort(self, length):  # noqa: N802 (SDK method name)
-      data = super().readPort(length)
-      self.read += len(data)
-      return data
-
-    def setPacketTimeout(self, packet_length):  # noqa: N802
-      super().setPacketTimeout(packet_length)
-      self._started = self.packet_start_time
-
-    def setPacketTimeoutMillis(self, msec):  # noqa: N802
-      super().setPacketTimeoutMillis(msec)
-      self._started = self.packet_start_time
-
-    def isPacketTimeout(self):  # noqa: N802
-      if not super().isPacketTimeout():
-        return False
-      if self.progress is None:
-        return True
-      # Behind: a request not yet answered, or a reply not yet read (a pty
-      # passes written bytes on asynchronously).
-      answered, sent = self.progress()
-      behind = answered < self.written or sent > self.read
-      waited_s = (self.getCurrentTime() - self._started) / 1000.0
-      if behind and waited_s < _BEHIND_BUS_LIMIT_S:
-        self.packet_start_time = self.getCurrentTime()
-        self.packet_timeout = 1.0  # Look again in a millisecond.
-        return False
-      return True
-
-  return PortHandler
-
-
 class DynamixelClient(register_access.RegisterAccess):
   """Talks to a fixed set of motors on one port.
 
@@ -229,7 +168,7 @@ class DynamixelClient(register_access.RegisterAccess):
       return
     if shutdown.exit_signal() is not None:
       raise self._not_connected()
-    port = _port_handler_class()(self._device_path)
+    port = port_lib.port_handler_class()(self._device_path)
     if self._bus_progress is not None:
       progress, (answered, sent) = self._bus_progress, self._bus_progress()
 

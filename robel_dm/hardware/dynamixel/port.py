@@ -7,16 +7,22 @@ port when it opens it (`flock`, which a second opener in this or another
 process cannot take) and names the holder when the lock is taken. A port
 that vanishes (USB adapter unplugged, bus process killed) makes pyserial
 and termios raise their own errors; `port_errors` turns them into
-`PortError`s naming the port.
+`PortError`s naming the port. `port_handler_class` is the SDK's port as
+the client opens it.
 """
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 import contextlib
 import fcntl
 import os
 import termios
 
 import serial
+
+try:
+  import dynamixel_sdk as sdk
+except ImportError:  # pragma: no cover - exercised without the extra
+  sdk = None
 
 from robel_dm.hardware.dynamixel.errors import DynamixelError
 
@@ -94,3 +100,64 @@ def _describe(pid: int, own_pid: int) -> str:
     command = ''
   command = command.strip()
   return f'pid {pid}' + (f' ({command[:80]})' if command else '')
+
+
+# How long a reply from a bus that is behind (see `DynamixelClient`'s
+# `bus_progress`) is waited for, seconds: a hang guard for a bus whose
+# thread stopped.
+_BEHIND_BUS_LIMIT_S = 10.0
+
+
+def port_handler_class():
+  """The SDK's PortHandler, extended with 4.5 Mbps (missing from its list)
+  and, for a bus that reports its progress, replies that come late because
+  the machine is busy."""
+
+  class PortHandler(sdk.PortHandler):
+    # Bytes the bus has answered of this port's output, and bytes it has
+    # sent to it; None for a real bus, whose replies are due within the
+    # SDK's deadline.
+    progress: Callable[[], tuple[int, int]] | None = None
+    written = read = 0
+    _started = 0.0
+
+    def getCFlagBaud(self, baudrate):  # noqa: N802 (SDK method name)
+      if baudrate == 4_500_000:
+        return baudrate
+      return super().getCFlagBaud(baudrate)
+
+    def writePort(self, packet):  # noqa: N802 (SDK method name)
+      written = super().writePort(packet)
+      self.written += written
+      return written
+
+    def readPort(self, length):  # noqa: N802 (SDK method name)
+      data = super().readPort(length)
+      self.read += len(data)
+      return data
+
+    def setPacketTimeout(self, packet_length):  # noqa: N802
+      super().setPacketTimeout(packet_length)
+      self._started = self.packet_start_time
+
+    def setPacketTimeoutMillis(self, msec):  # noqa: N802
+      super().setPacketTimeoutMillis(msec)
+      self._started = self.packet_start_time
+
+    def isPacketTimeout(self):  # noqa: N802
+      if not super().isPacketTimeout():
+        return False
+      if self.progress is None:
+        return True
+      # Behind: a request not yet answered, or a reply not yet read (a pty
+      # passes written bytes on asynchronously).
+      answered, sent = self.progress()
+      behind = answered < self.written or sent > self.read
+      waited_s = (self.getCurrentTime() - self._started) / 1000.0
+      if behind and waited_s < _BEHIND_BUS_LIMIT_S:
+        self.packet_start_time = self.getCurrentTime()
+        self.packet_timeout = 1.0  # Look again in a millisecond.
+        return False
+      return True
+
+  return PortHandler
