@@ -64,10 +64,7 @@ def _device_path(env) -> str:
 # repro of the issue: nothing but `from robel_dm import suite` in it).
 _DRIVE_FROM_A_WORKER = """
 import threading
-import dynamixel_sdk
 {main_thread_import}
-# A deadline of about 1 s: on a loaded machine no healthy reply misses it.
-dynamixel_sdk.port_handler.LATENCY_TIMER = 500
 
 def drive():
   env = suite.load('dclaw', 'turn_fixed', device_path=DEVICE, reset='move')
@@ -86,10 +83,9 @@ worker.join()
 
 @pytest.mark.parametrize('signum', _EXIT_SIGNALS, ids=lambda s: s.name)
 def test_an_exit_signal_releases_a_robot_driven_from_a_worker_thread(
-  standalone_bus, monkeypatch, signum
+  standalone_bus, signum
 ):
   device_path, _ = standalone_bus
-  monkeypatch.setattr(sdk.port_handler, 'LATENCY_TIMER', 500)  # Reading back.
   child = _child(
     device_path,
     _DRIVE_FROM_A_WORKER.format(main_thread_import=''),

@@ -216,8 +216,7 @@ _SHIPPED = sorted(
 
 def _shipped_row(domain: str, task: str) -> dict:
   """The table's row that a shipped policy's metadata names."""
-  path = assets.baselines_dir() / f'{domain}_{task}.npz'
-  metadata = json.loads(str(np.load(path)['metadata']))
+  metadata = baselines.shipped_metadata(domain, task)
   rows = json.loads(baselines.RESULTS.read_text())
   (row,) = (
     row

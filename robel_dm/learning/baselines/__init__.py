@@ -339,13 +339,17 @@ def shipped_metadata(domain: str, task: str) -> dict | None:
     return json.loads(str(arrays['metadata']))
 
 
-def best_policy(domain: str, task: str) -> pathlib.Path | None:
+def best_policy(
+  domain: str, task: str, rows: list[dict] | None = None
+) -> pathlib.Path | None:
   """The policy of the task's best solved row (valve3; highest final
   success, then mean score) that is at hand: its run's best policy, or the
   shipped one if it is that row's. Run folders are not committed, so in a
   fresh clone the shipped policy stands until a better row's run is made.
-  Without records, the shipped policy."""
-  rows = json.loads(RESULTS.read_text()) if RESULTS.is_file() else []
+  Without records, the shipped policy. `rows`: the records, if already
+  read."""
+  if rows is None:
+    rows = json.loads(RESULTS.read_text()) if RESULTS.is_file() else []
   solved = sorted(
     (
       row

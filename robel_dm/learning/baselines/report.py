@@ -207,7 +207,7 @@ def ship(rows: list[dict]) -> list[str]:
   for domain, task in sorted(
     {(r['domain'], r['task']) for r in rows if not r['task_kwargs']}
   ):
-    source = baselines.best_policy(domain, task)
+    source = baselines.best_policy(domain, task, rows)
     if source is None:
       continue
     target = baselines.POLICIES / f'{domain}_{task}.npz'
