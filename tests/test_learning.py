@@ -233,7 +233,7 @@ def test_every_solved_task_ships_a_policy():
   solved = {
     (row['domain'], row['task'])
     for row in rows
-    if not row['task_kwargs'] and row['success'] >= baselines.PLAN['solved']
+    if not row['task_kwargs'] and baselines.solved(row)
   }
   assert set(_SHIPPED) == solved
 
@@ -248,7 +248,7 @@ def test_shipped_baselines_reproduce_their_rows(shipped):
   # evaluation, and fails if they succeed significantly less often than
   # the row's (one-sided Fisher exact test at the 1% level).
   row = _shipped_row(*shipped)
-  assert row['success'] >= baselines.PLAN['solved']
+  assert baselines.solved(row)
   if shipped in suite.FIXED:
     results = evaluate.evaluate(*shipped, 1, policy='baseline', seed=5_000_000)
     assert results['success_rate'] == 1.0

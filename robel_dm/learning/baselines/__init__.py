@@ -330,6 +330,12 @@ def demonstrations(run: Run, log=print) -> str | None:
   return str(directory)
 
 
+def solved(row: dict) -> bool:
+  """Whether a record counts as solved: final success of at least the
+  plan's bar (0.8)."""
+  return row['success'] >= PLAN['solved']
+
+
 def shipped_metadata(domain: str, task: str) -> dict | None:
   """The metadata of the task's policy in policies/, if one is there."""
   path = POLICIES / f'{domain}_{task}.npz'
@@ -350,20 +356,20 @@ def best_policy(
   read."""
   if rows is None:
     rows = json.loads(RESULTS.read_text()) if RESULTS.is_file() else []
-  solved = sorted(
+  best_first = sorted(
     (
       row
       for row in rows
       if (row['domain'], row['task']) == (domain, task)
       and not row['task_kwargs']
-      and row['success'] >= PLAN['solved']
+      and solved(row)
     ),
     key=lambda row: (row['success'], row['score']),
     reverse=True,
   )
   shipped = POLICIES / f'{domain}_{task}.npz'
   metadata = shipped_metadata(domain, task)
-  for row in solved:
+  for row in best_first:
     source = Run(domain, task, row['algo'], row['seed']).directory
     if (source / 'policy_best.npz').is_file():
       return source / 'policy_best.npz'
@@ -372,7 +378,7 @@ def best_policy(
       row['seed'],
     ):
       return shipped
-  return shipped if metadata and not solved else None
+  return shipped if metadata and not best_first else None
 
 
 def train_run(run: Run, log=print) -> dict | None:

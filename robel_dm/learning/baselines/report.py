@@ -63,7 +63,7 @@ def summary_table(rows: list[dict]) -> str:
     '|---|---|---|---|---|---|',
   ]
   for (name, algo), group in sorted(groups.items()):
-    solved = sum(row['success'] >= baselines.PLAN['solved'] for row in group)
+    solved = sum(map(baselines.solved, group))
     reached = sorted(
       row['steps_to_80'] for row in group if row['steps_to_80'] is not None
     )
@@ -157,7 +157,7 @@ def solved_table(rows: list[dict]) -> str:
     for (d, t, algo), group in sorted(groups.items()):
       if (d, t) != (domain, task):
         continue
-      count = sum(r['success'] >= baselines.PLAN['solved'] for r in group)
+      count = sum(map(baselines.solved, group))
       mean = sum(r['success'] for r in group) / len(group)
       if count >= seeds:
         solving.append(f'`{algo}`')

@@ -1,0 +1,112 @@
+r"""What makes D'Kitty Walk RandomDynamics hard: its three changes one by one.
+
+    python benchmarks/walk_random_dynamics.py POLICY.npz [POLICY.npz ...] \
+        [--episodes=50] [--conditions=plain,terrain,dynamics,noise,all]
+
+Walk RandomDynamics is Walk Random plus three things: a random height
+field (bumps of 0-5 cm), randomized physics (joint damping and friction,
+actuator gains, contact friction, total mass) and observation noise on the
+leg joints. Each policy runs the same `--episodes` fresh episodes (seeded
+apart from training and from the baseline table's evaluations) under each
+condition: Walk Random as it is ("plain"), with one of the three changes
+("terrain", "dynamics", "noise"), or with all of them ("all", which is Walk
+RandomDynamics); the randomized physics can also be taken one quantity at
+a time ("damping", "friction_loss", "gain", "contact_friction", "mass"):
+`--conditions=` picks which. Printed per condition: success rate, share
+of episodes ended by a fall, mean distance left to the target at the end,
+m, and mean progress toward it, m. Policies trained on another variant
+run here on purpose.
+"""
+
+import argparse
+
+import numpy as np
+
+from robel_dm import constants, policies, randomization, suite
+
+_SEED = 6_000_000
+_RANGES = randomization.DKITTY_LOCOMOTION
+CONDITIONS = {
+  'plain': {},
+  'terrain': {'terrain': True},
+  'dynamics': {'dynamics': _RANGES},
+  'noise': {'observation_noise': constants.OBSERVATION_NOISE_FRACTION},
+  'all': {
+    'terrain': True,
+    'dynamics': _RANGES,
+    'observation_noise': constants.OBSERVATION_NOISE_FRACTION,
+  },
+  # The randomized physics one quantity at a time.
+  **{
+    name: {
+      'dynamics': randomization.DynamicsRanges(
+        **{field: getattr(_RANGES, field) for field in fields}
+      )
+    }
+    for name, fields in (
+      ('damping', ('damping', 'damping_shared')),
+      ('friction_loss', ('friction_loss', 'friction_loss_shared')),
+      ('gain', ('actuator_kp',)),
+      ('contact_friction', ('geom_friction',)),
+      ('mass', ('total_mass',)),
+    )
+  },
+}
+
+
+def run(policy: policies.NumpyPolicy, condition: str, episodes: int) -> dict:
+  """`episodes` episodes of walk_random under `condition`: the means of
+  success, fallen, distance left (m) and progress toward the target (m)."""
+  env = suite.load(
+    'dkitty', 'walk_random', task_kwargs=CONDITIONS[condition], seed=_SEED
+  )
+  rows = []
+  for _ in range(episodes):
+    timestep = env.reset()
+    error = np.asarray(timestep.observation['target_error'], float)
+    start = np.asarray(timestep.observation['root_pos'][:2], float)
+    while not timestep.last():
+      timestep = env.step(policy(timestep))
+    obs = timestep.observation
+    moved = np.asarray(obs['root_pos'][:2], float) - start
+    rows.append(
+      (
+        float(obs['success']),
+        float(timestep.discount == 0),  # A fall ends it with discount 0.
+        float(np.linalg.norm(obs['target_error'])),
+        float(moved @ error / np.linalg.norm(error)),
+      )
+    )
+  env.close()
+  means = np.mean(rows, axis=0)
+  names = ('success', 'fallen', 'left', 'progress')
+  return dict(zip(names, means, strict=True))
+
+
+def main() -> None:
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  parser.add_argument('policies', nargs='+')
+  parser.add_argument('--episodes', type=int, default=50)
+  parser.add_argument(
+    '--conditions', default='plain,terrain,dynamics,noise,all'
+  )
+  args = parser.parse_args()
+  conditions = args.conditions.split(',')
+  unknown = sorted(set(conditions) - set(CONDITIONS))
+  if unknown:
+    parser.error(f'unknown conditions {unknown}; known: {list(CONDITIONS)}')
+  for path in args.policies:
+    policy = policies.load(path, any_variant=True)
+    print(f'{path}: {args.episodes} episodes of dkitty/walk_random each')
+    print('condition         success  fallen  distance left, m  progress, m')
+    for condition in conditions:
+      result = run(policy, condition, args.episodes)
+      print(
+        f'{condition:16}  {result["success"]:7.2f}  {result["fallen"]:6.2f}  '
+        f'{result["left"]:16.2f}  {result["progress"]:11.2f}',
+        flush=True,
+      )
+
+
+if __name__ == '__main__':
+  main()
