@@ -52,15 +52,16 @@ def _wait_for(condition, describe, timeout_s: float = 60.0) -> None:
 def lockstep(monkeypatch):
   """The SDK in lockstep with the in-process virtual buses started from now.
 
-  The SDK gives up on a reply after a wall-clock timeout (about 6 ms with
-  `short_timeouts`), and a virtual bus answers from its own thread: on a
-  busy machine a healthy motor's reply can miss the timeout, and that motor
-  is then called silent or corrupted, or its late reply is taken for
-  another's. In lockstep every packet the SDK sends waits until the bus has
-  answered it (the bus counts the bytes it has answered, `bytes_in`) and
-  the whole reply (`bytes_out`) is readable: a reply is missing only if the
-  bus sent none, whatever the load, and a fault injected between calls hits
-  the next packets sent. Request it before any fixture that loads a robot.
+  A virtual bus answers from its own thread. The client already waits for
+  a bus that is behind before it calls a motor silent (`bus_progress`), but
+  only when it expects a reply: a write without one (a sync write, a
+  broadcast) returns as soon as its bytes are sent, so a fault injected
+  right after it could reach the bus before that write does. In lockstep
+  every packet the SDK sends waits until the bus has answered it (the bus
+  counts the bytes it has answered, `bytes_in`) and the whole reply
+  (`bytes_out`) is readable, so a fault injected between calls hits
+  exactly the next packets sent, whatever the load. Request it before any
+  fixture that loads a robot.
   """
   servers = {}  # Device path -> the server started on it.
   start = virtual.PtyBusServer.start
