@@ -221,7 +221,7 @@ def done(run: Run) -> bool:
 def _curve_end(run: Run, rows: list[dict] | None = None) -> int | float:
   """The last evaluation's env steps (epochs for bc), from the run's log
   or from its `rows` if already read."""
-  last = (rows or _log(run))[-1]
+  last = (_log(run) if rows is None else rows)[-1]
   return last.get('epoch', last['env_steps'])
 
 
