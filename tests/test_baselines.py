@@ -279,6 +279,7 @@ def test_the_report_is_derived_from_the_records(sandbox):
   assert 'holds 2 records (0 of them runs outside the plan' in text
   assert '| dkitty/walk_random | not yet | no run yet |' in text
   assert '| dclaw/pose_fixed |' in text.split('<!-- solved -->')[1]
+  assert '| dclaw/turn_random (valve4) | not yet | no run yet |' in text
 
 
 def test_a_recorded_run_is_not_trained_again_without_its_folder(sandbox):

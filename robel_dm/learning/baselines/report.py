@@ -140,22 +140,24 @@ def remaining(rows: list[dict]) -> str:
 
 
 def solved_table(rows: list[dict]) -> str:
-  """Per Fixed and Random task: the agents that solve it on every seed
-  of the plan, or the best any agent has done."""
+  """Per Fixed and Random task (the valve tasks on the 4-prong valve too):
+  the agents that solve it on every seed of the plan, or the best any
+  agent has done."""
   seeds = len(baselines.PLAN['seeds'])
   groups = collections.defaultdict(list)
   for row in rows:
-    if not row['task_kwargs']:
-      groups[(row['domain'], row['task'], row['algo'])].append(row)
+    groups[(_name(row), row['algo'])].append(row)
+  tasks = [f'{domain}/{task}' for domain, task in suite.FIXED + suite.RANDOM]
+  tasks += [f'{task} (valve4)' for task in baselines.PLAN['valve4']]
   lines = [
     f'| Task | Solved on {seeds} of {seeds} seeds by '
     '| Otherwise, best so far |',
     '|---|---|---|',
   ]
-  for domain, task in sorted(suite.FIXED + suite.RANDOM):
+  for name in sorted(tasks):
     solving, best = [], None
-    for (d, t, algo), group in sorted(groups.items()):
-      if (d, t) != (domain, task):
+    for (task, algo), group in sorted(groups.items()):
+      if task != name:
         continue
       count = sum(map(baselines.solved, group))
       mean = sum(r['success'] for r in group) / len(group)
@@ -166,7 +168,7 @@ def solved_table(rows: list[dict]) -> str:
         best = ((count, mean), f'`{algo}`: {successes}')
     otherwise = '' if solving else (best[1] if best else 'no run yet')
     lines.append(
-      f'| {domain}/{task} | {", ".join(solving) or "not yet"} | {otherwise} |'
+      f'| {name} | {", ".join(solving) or "not yet"} | {otherwise} |'
     )
   return '\n'.join(lines)
 
