@@ -95,8 +95,11 @@ def main() -> None:
   unknown = sorted(set(conditions) - set(CONDITIONS))
   if unknown:
     parser.error(f'unknown conditions {unknown}; known: {list(CONDITIONS)}')
-  for path in args.policies:
-    policy = policies.load(path, any_variant=True)
+  try:
+    loaded = [policies.load(path, any_variant=True) for path in args.policies]
+  except policies.PolicyError as error:
+    parser.error(str(error))
+  for path, policy in zip(args.policies, loaded, strict=True):
     print(f'{path}: {args.episodes} episodes of dkitty/walk_random each')
     print('condition         success  fallen  distance left, m  progress, m')
     for condition in conditions:
