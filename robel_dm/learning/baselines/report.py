@@ -52,11 +52,17 @@ def run_table(rows: list[dict]) -> str:
   return '\n'.join(lines)
 
 
-def summary_table(rows: list[dict]) -> str:
-  """One line per task and agent: seeds solved, success, compute."""
+def _by_task_and_agent(rows: list[dict]) -> dict[tuple[str, str], list]:
+  """The records grouped by (task name, agent), in record order."""
   groups = collections.defaultdict(list)
   for row in rows:
     groups[(_name(row), row['algo'])].append(row)
+  return groups
+
+
+def summary_table(rows: list[dict]) -> str:
+  """One line per task and agent: seeds solved, success, compute."""
+  groups = _by_task_and_agent(rows)
   lines = [
     '| Task | Agent | Seeds solved (success >= 0.8) | Success per seed '
     '| Median steps to 80% | CPU min in all |',
@@ -144,9 +150,7 @@ def solved_table(rows: list[dict]) -> str:
   the agents that solve it on every seed of the plan, or the best any
   agent has done."""
   seeds = len(baselines.PLAN['seeds'])
-  groups = collections.defaultdict(list)
-  for row in rows:
-    groups[(_name(row), row['algo'])].append(row)
+  groups = _by_task_and_agent(rows)
   tasks = [f'{domain}/{task}' for domain, task in suite.FIXED + suite.RANDOM]
   tasks += [f'{task} (valve4)' for task in baselines.PLAN['valve4']]
   lines = [
