@@ -20,9 +20,9 @@ run here on purpose.
 
 import argparse
 
-import numpy as np
+import walk_random_targets  # Beside this file.
 
-from robel_dm import constants, policies, randomization, suite
+from robel_dm import constants, policies, randomization
 
 _SEED = 6_000_000
 _RANGES = randomization.DKITTY_LOCOMOTION
@@ -54,33 +54,18 @@ CONDITIONS = {
 }
 
 
-def run(policy: policies.NumpyPolicy, condition: str, episodes: int) -> dict:
-  """`episodes` episodes of walk_random under `condition`: the means of
+def run(policy: policies.NumpyPolicy, condition: str, count: int) -> dict:
+  """`count` episodes of walk_random under `condition`: the means of
   success, fallen, distance left (m) and progress toward the target (m)."""
-  env = suite.load(
-    'dkitty', 'walk_random', task_kwargs=CONDITIONS[condition], seed=_SEED
+  result = walk_random_targets.episodes(
+    policy, count, _SEED, CONDITIONS[condition]
   )
-  rows = []
-  for _ in range(episodes):
-    timestep = env.reset()
-    error = np.asarray(timestep.observation['target_error'], float)
-    start = np.asarray(timestep.observation['root_pos'][:2], float)
-    while not timestep.last():
-      timestep = env.step(policy(timestep))
-    obs = timestep.observation
-    moved = np.asarray(obs['root_pos'][:2], float) - start
-    rows.append(
-      (
-        float(obs['success']),
-        float(timestep.discount == 0),  # A fall ends it with discount 0.
-        float(np.linalg.norm(obs['target_error'])),
-        float(moved @ error / np.linalg.norm(error)),
-      )
-    )
-  env.close()
-  means = np.mean(rows, axis=0)
-  names = ('success', 'fallen', 'left', 'progress')
-  return dict(zip(names, means, strict=True))
+  return {
+    'success': result['success'].mean(),
+    'fallen': result['fallen'].mean(),
+    'left': result['left'].mean(),
+    'progress': result['along'].mean(),
+  }
 
 
 def main() -> None:

@@ -23,9 +23,14 @@ _SEED = 4_000_000
 _BANDS = ((-60, -20), (-20, 20), (20, 60.01))
 
 
-def _episodes(path: str, count: int) -> dict[str, np.ndarray]:
-  env = suite.load('dkitty', 'walk_random', seed=_SEED)
-  policy = policies.load(path, any_variant=True)
+def episodes(
+  policy: policies.NumpyPolicy, count: int, seed: int, task_kwargs=None
+) -> dict[str, np.ndarray]:
+  """`count` episodes of walk_random (with `task_kwargs`), per episode: the
+  target's angle from straight ahead and distance at the start, the
+  distance left at the end, progress along the direction to the target,
+  success, and whether a fall ended it."""
+  env = suite.load('dkitty', 'walk_random', task_kwargs=task_kwargs, seed=seed)
   rows = []
   for _ in range(count):
     timestep = env.reset()
@@ -39,13 +44,14 @@ def _episodes(path: str, count: int) -> dict[str, np.ndarray]:
     moved = np.asarray(obs['root_pos'][:2], float) - start
     along = float(moved @ error / np.linalg.norm(error))
     left = float(np.linalg.norm(obs['target_error']))
-    rows.append((angle, np.linalg.norm(error), left, along, obs['success']))
+    fallen = timestep.discount == 0  # A fall ends an episode, discount 0.
+    rows.append(
+      (angle, np.linalg.norm(error), left, along, obs['success'], fallen)
+    )
   env.close()
-  angle, distance, left, along, success = (
-    np.array(c, float) for c in zip(*rows, strict=True)
-  )
-  return {'angle': angle, 'distance': distance, 'left': left,
-          'along': along, 'success': success}  # fmt: skip
+  names = ('angle', 'distance', 'left', 'along', 'success', 'fallen')
+  columns = (np.array(c, float) for c in zip(*rows, strict=True))
+  return dict(zip(names, columns, strict=True))
 
 
 def main() -> None:
@@ -54,7 +60,8 @@ def main() -> None:
   parser.add_argument('--episodes', type=int, default=100)
   args = parser.parse_args()
   for path in args.policies:
-    result = _episodes(path, args.episodes)
+    policy = policies.load(path, any_variant=True)
+    result = episodes(policy, args.episodes, _SEED)
     angle = np.degrees(result['angle'])
     print(f'{path}: {args.episodes} episodes of dkitty/walk_random')
     print('target angle, deg  share  success  distance left, m  '
