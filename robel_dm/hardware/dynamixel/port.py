@@ -19,11 +19,6 @@ import termios
 
 import serial
 
-try:
-  import dynamixel_sdk as sdk
-except ImportError:  # pragma: no cover - exercised without the extra
-  sdk = None
-
 from robel_dm.hardware.dynamixel.errors import DynamixelError
 
 # What the OS and pyserial raise when a port fails.
@@ -111,7 +106,9 @@ _BEHIND_BUS_LIMIT_S = 10.0
 def port_handler_class():
   """The SDK's PortHandler, extended with 4.5 Mbps (missing from its list)
   and, for a bus that reports its progress, replies that come late because
-  the machine is busy."""
+  the machine is busy. Only the client calls it, once it has checked that
+  the SDK is installed."""
+  import dynamixel_sdk as sdk  # noqa: PLC0415 (the optional hardware extra)
 
   class PortHandler(sdk.PortHandler):
     # Bytes the bus has answered of this port's output, and bytes it has
