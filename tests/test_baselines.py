@@ -12,7 +12,11 @@ pytest.importorskip('sbx')
 
 from robel_dm import suite  # noqa: E402
 from robel_dm.learning import agents, baselines  # noqa: E402
-from robel_dm.learning.baselines import cli, report  # noqa: E402
+from robel_dm.learning.baselines import (  # noqa: E402
+  cli,
+  demonstrations,
+  report,
+)
 
 FIELDS = {'domain', 'task', 'task_kwargs', 'algo', 'seed', 'env_steps',
           'success', 'score', 'steps_to_80', 'violations', 'wall_minutes',
@@ -105,6 +109,7 @@ def sandbox(tmp_path, monkeypatch):
                      ('DOC', 'docs/table.txt'), ('FIGURES', 'docs/figures'),
                      ('POLICIES', 'policies')):  # fmt: skip
     monkeypatch.setattr(baselines, name, tmp_path / path)
+  monkeypatch.setattr(demonstrations, 'DIRECTORY', tmp_path / 'demonstrators')
   (tmp_path / 'policies').mkdir()
   return tmp_path
 
@@ -216,6 +221,54 @@ def test_a_shipped_policy_demonstrates_in_a_checkout_without_runs(
   lines = []
   assert baselines.train_run(run, log=lines.append) is not None
   assert 'demonstrations of dclaw/turn_fixed by' in lines[0]
+
+
+def test_a_pinned_demonstrator_demonstrates_until_it_changes(
+  sandbox, monkeypatch
+):
+  # The table's best policy of the task differs from its demonstrator; the
+  # demonstrator records, once, and again when it is replaced.
+  monkeypatch.setitem(
+    baselines.PLAN['tasks'], 'dclaw/turn_fixed', {'steps': 8, 'eval_every': 8}
+  )
+  pinned = demonstrations.demonstrator('dclaw', 'turn_fixed')
+  pinned.parent.mkdir()
+  committed = baselines.ROOT / 'docs' / 'baselines' / 'demonstrators'
+  shipped = baselines.ROOT / 'policies' / 'dclaw_turn_fixed.npz'
+  shutil.copy(committed / 'dclaw_turn_fixed.npz', pinned)
+  shutil.copy(shipped, sandbox / 'policies')
+  run = baselines.Run('dclaw', 'turn_fixed', 'bc', 0)
+  lines = []
+  directory = demonstrations.record(run, lines.append)
+  assert lines == [f'demonstrations of dclaw/turn_fixed by {pinned}']
+  assert demonstrations.record(run, lines.append) == directory
+  assert len(lines) == 1  # Kept, not made again.
+  shutil.copy(shipped, pinned)
+  demonstrations.record(run, lines.append)
+  assert lines[1:] == [f'demonstrations of dclaw/turn_fixed by {pinned}']
+
+
+@pytest.mark.parametrize('key', baselines.PLAN['every_agent'])
+def test_a_task_without_a_controller_has_a_pinned_solved_demonstrator(key):
+  # Every checkout must record the same demonstrations, whatever policy the
+  # table ships at the time.
+  domain, task = key.split('/')
+  if demonstrations.has_reference_controller(domain, task):
+    # Its controller demonstrates: a pinned policy would lie unused.
+    assert not demonstrations.demonstrator(domain, task).exists()
+    return
+  with np.load(demonstrations.demonstrator(domain, task)) as arrays:
+    metadata = json.loads(str(arrays['metadata']))
+  assert (metadata['domain'], metadata['task']) == (domain, task)
+  assert not metadata['task_kwargs']
+  rows = [
+    row
+    for row in json.loads(baselines.RESULTS.read_text())
+    if (row['domain'], row['task'], row['algo'], row['seed'])
+    == (domain, task, metadata['algo'], metadata['seed'])
+    and not row['task_kwargs']
+  ]
+  assert len(rows) == 1 and baselines.solved(rows[0]), rows
 
 
 def test_the_best_solved_policy_at_hand_is_shipped(sandbox):

@@ -14,9 +14,8 @@ trains with `robel_dm.learning.train` into `runs/baselines/<name>/`, then
 its best policy is evaluated afresh (`final.json`): once on a Fixed task
 (whose episodes are all the same one, the simulation being deterministic),
 on `final_episodes_random` episodes with unused seeds on the others.
-Demonstrations (bc, sac_demos) are 20 episodes of the task's reference
-controller, or of the table's best solved policy of the task where there is
-none; a run whose demonstrations cannot be made yet waits for a later pass.
+Demonstrations (bc, sac_demos) come from `demonstrations`; a run whose
+demonstrations cannot be made yet waits for a later pass.
 """
 
 import dataclasses
@@ -24,7 +23,6 @@ import fcntl
 import fnmatch
 import json
 import pathlib
-import shutil
 import subprocess
 import time
 from typing import Any
@@ -293,43 +291,6 @@ def _confirmed(run: Run, log=print) -> bool:
   return held
 
 
-def demonstrations(run: Run, log=print) -> str | None:
-  """The demonstration recording for `run` (made if needed), or None if
-  nothing can demonstrate the task yet."""
-  from robel_dm import evaluate, policies  # noqa: PLC0415
-
-  directory = RUNS_DIR / 'demos' / f'{run.domain}_{run.task}'
-  if (directory / 'meta' / 'episodes.jsonl').is_file():
-    lines = (directory / 'meta' / 'episodes.jsonl').read_text().splitlines()
-    if len(lines) >= PLAN['demo_episodes']:
-      return str(directory)
-  env = suite.load(run.domain, run.task)
-  try:
-    env.task.reference_action(env.physics)
-    source = 'reference'
-  except NotImplementedError:
-    source = None
-  finally:
-    env.close()
-  if source is None:
-    best = best_policy(run.domain, run.task)
-    if best is None:
-      return None
-    source = str(best)
-  shutil.rmtree(directory, ignore_errors=True)
-  directory.parent.mkdir(parents=True, exist_ok=True)
-  log(f'demonstrations of {run.domain}/{run.task} by {source}')
-  evaluate.evaluate(
-    run.domain,
-    run.task,
-    PLAN['demo_episodes'],
-    policy=source if source == 'reference' else policies.load(source),
-    seed=FINAL_SEED_OFFSET * 2,
-    record=str(directory),
-  )
-  return str(directory)
-
-
 def solved(row: dict) -> bool:
   """Whether a record counts as solved: final success of at least the
   plan's bar (0.8)."""
@@ -394,7 +355,9 @@ def train_run(run: Run, log=print) -> dict | None:
     (run.directory / FINAL).unlink()
   demos = ()
   if agents.get(run.algo).needs_demos:
-    source = demonstrations(run, log)
+    from robel_dm.learning.baselines import demonstrations  # noqa: PLC0415
+
+    source = demonstrations.record(run, log)
     if source is None:
       log(f'{run.name}: waits for a solved policy to demonstrate the task')
       return None
