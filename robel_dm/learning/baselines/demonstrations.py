@@ -3,10 +3,9 @@
 A task is demonstrated by its scripted reference controller; where it has
 none, by its pinned demonstrator (`docs/baselines/demonstrators/`, one
 `<domain>_<task>.npz` per task, committed with the table's data so that
-every checkout records the same episodes); else by the
-table's best solved policy of the task at hand. The recording is made once
-per machine under `runs/baselines/demos/` and made again if its source
-changes.
+every checkout records the same episodes); else by the table's best solved
+policy of the task at hand. The recording is made once per machine under
+`runs/baselines/demos/` and made again if its source changes.
 """
 
 import hashlib
