@@ -12,7 +12,7 @@ import hashlib
 import pathlib
 import shutil
 
-from robel_dm import suite
+from robel_dm import task_args
 from robel_dm.learning import baselines
 
 DIRECTORY = baselines.ROOT / 'docs' / 'baselines' / 'demonstrators'
@@ -23,21 +23,9 @@ def demonstrator(domain: str, task: str) -> pathlib.Path:
   return DIRECTORY / f'{domain}_{task}.npz'
 
 
-def has_reference_controller(domain: str, task: str) -> bool:
-  """Whether the task has a scripted controller to demonstrate it."""
-  env = suite.load(domain, task)
-  try:
-    env.task.reference_action(env.physics)
-    return True
-  except NotImplementedError:
-    return False
-  finally:
-    env.close()
-
-
 def _source(run: baselines.Run) -> str | None:
   """'reference', a policy file, or None (nothing can demonstrate yet)."""
-  if has_reference_controller(run.domain, run.task):
+  if task_args.unavailable('reference', run.domain, run.task, {}) is None:
     return 'reference'
   pinned = demonstrator(run.domain, run.task)
   if pinned.is_file():
