@@ -5,6 +5,7 @@ import pathlib
 import shutil
 import subprocess
 import sys
+import tarfile
 import zipfile
 
 import pytest
@@ -76,3 +77,35 @@ def test_installed_wheel_loads_tasks_from_packaged_models(wheel, tmp_path):
   assert pathlib.Path(baselines_dir) == (
     target / 'robel_dm' / 'baseline_policies'
   )
+
+
+def test_source_distribution_is_the_repository_less_ci(tmp_path):
+  # The tests read docs/ (the baseline table) and benchmarks/: an sdist
+  # missing a tracked file could not run its own tests.
+  try:
+    listing = subprocess.run(
+      ['git', 'ls-files', '-z'],
+      cwd=_REPO, capture_output=True, check=True, text=True,
+    ).stdout  # fmt: skip
+  except (OSError, subprocess.CalledProcessError):
+    pytest.skip('needs a git checkout to know the tracked files')
+  tracked = {name for name in listing.split('\0') if name}
+  # Build from a copy of the tracked files: the checkout's untracked files
+  # (runs/, caches) are not the question here.
+  source = tmp_path / 'source'
+  for name in tracked:
+    (source / name).parent.mkdir(parents=True, exist_ok=True)
+    shutil.copy(_REPO / name, source / name)
+  subprocess.run(
+    [sys.executable, '-m', 'build', '--sdist', '--no-isolation',
+     '--outdir', str(tmp_path / 'dist'), str(source)],
+    check=True, capture_output=True,
+  )  # fmt: skip
+  (sdist,) = (tmp_path / 'dist').glob('robel_dm-*.tar.gz')
+  with tarfile.open(sdist) as archive:
+    names = {
+      name.split('/', 1)[1] for name in archive.getnames() if '/' in name
+    }
+  expected = {name for name in tracked if not name.startswith('.ci/')}
+  assert expected - names == set()
+  assert names - expected == {'PKG-INFO'}
