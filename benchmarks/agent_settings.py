@@ -48,6 +48,22 @@ SETTINGS = {
     (256, 256),
     {**_BASE, 'learning_rate': 1e-3, 'policy_delay': 2},
   ),
+  # The default with SB3's batch of 256: twice the samples per update.
+  'batch256_lr1e3': (
+    (256, 256),
+    {**_BASE, 'batch_size': 256, 'learning_rate': 1e-3},
+  ),
+  # SB3's SAC defaults (sbx shares them: learning rate 3e-4) on sbx: one
+  # update of 256 samples per env step from step 100.
+  'sb3_defaults': (
+    (256, 256),
+    {
+      'train_freq': 1,
+      'gradient_steps': 1,
+      'learning_starts': 100,
+      'batch_size': 256,
+    },
+  ),
 }
 # task -> (domain, evaluate every, budget in env steps).
 TASKS = {
