@@ -11,7 +11,7 @@ import pytest
 pytest.importorskip('sbx')
 
 from robel_dm import suite, task_args  # noqa: E402
-from robel_dm.learning import agents, baselines  # noqa: E402
+from robel_dm.learning import agents, baselines, train  # noqa: E402
 from robel_dm.learning.baselines import (  # noqa: E402
   cli,
   demonstrations,
@@ -393,8 +393,40 @@ def test_list_says_what_the_runs_left_cost(sandbox, capsys):
   # bc counts epochs.
   assert '16 env steps of sac (0.0 CPU h)' in out
   # No record of sac_demos or trpo, nor of their kinds: no rate.
-  assert '16 env steps of sac_demos, 160 env steps of trpo, at' in out
+  assert '16 env steps of sac_demos, 160 env steps of trpo left, at' in out
   assert 'runs to do' in out
+
+
+def _cost(domain, task, env_steps, cpu_minutes) -> dict:
+  return {
+    'domain': domain, 'task': task, 'task_kwargs': {}, 'algo': 'sac',
+    'seed': 0, 'success': 1.0, 'budget': env_steps, 'env_steps': env_steps,
+    'cpu_minutes': cpu_minutes, 'curve': [[0, 0.0], [env_steps, 1.0]],
+  }  # fmt: skip
+
+
+def test_list_prices_the_steps_left_at_the_same_task_and_robot(sandbox, capsys):
+  baselines.PLAN['tasks']['dclaw/pose_random']['steps'] = 600_000
+  # 6 CPU ms per env step on the same robot; 60 on the other (not planned).
+  baselines.merge_results([
+    _cost('dclaw', 'pose_fixed', 40_000, 4.0),
+    _cost('dkitty', 'stand_fixed', 40_000, 40.0),
+  ])  # fmt: skip
+  assert cli.main(['list']) == 0
+  assert '600,000 env steps of sac (1.0 CPU h)' in capsys.readouterr().out
+  # Half done at 24 ms per step: the other half at that run's own rate.
+  run = baselines.Run('dclaw', 'pose_random', 'sac', 0)
+  run.directory.mkdir(parents=True)
+  (run.directory / train.EVAL_LOG).write_text(
+    json.dumps({
+      'env_steps': 300_000, 'wall_time': 7_200.0, 'cpu_time': 7_200.0,
+      'eval_time': 0.0, 'success_rate': 0.0, 'mean_score': 0.0,
+      'mean_return': 0.0, 'episodes': 2,
+      'safety': {'position': 0.0, 'velocity': 0.0, 'current': 0.0},
+    }) + '\n'
+  )  # fmt: skip
+  assert cli.main(['list']) == 0
+  assert '300,000 env steps of sac (2.0 CPU h)' in capsys.readouterr().out
 
 
 def test_the_table_fans_out_over_ray(sandbox):

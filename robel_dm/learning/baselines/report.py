@@ -110,38 +110,63 @@ def progress(rows: list[dict]) -> str:
 
 
 def remaining(rows: list[dict]) -> str:
-  """What the runs still to do cost at most: their budgets, at the median
-  CPU time per env step of the same agent's records (of the same kind of
-  agent where the agent has none)."""
+  """What the runs still to do cost at most: the steps left of their
+  budgets, at the median CPU time per env step of the same agent on the
+  same task (its records, and its runs in progress), else on the same
+  robot, else anywhere (else of the same kind of agent): an env step of
+  Walk RandomDynamics, on its bumps, costs a multiple of one of Pose."""
   from robel_dm.learning import agents  # noqa: PLC0415
 
-  rates = collections.defaultdict(list)  # algo or kind -> CPU ms per step
+  def keys(algo: str, domain: str, task: str) -> tuple:
+    kind = agents.get(algo).kind
+    return (algo, domain, task), (algo, domain), algo, kind
+
+  rates = collections.defaultdict(list)  # key -> CPU ms per env step
+
+  def measured(algo, domain, task, env_steps, cpu_minutes) -> None:
+    if env_steps > 20_000:  # Compilation and evaluation amortized.
+      for key in keys(algo, domain, task):
+        rates[key].append(cpu_minutes * 60_000 / env_steps)
+
   for row in rows:
-    if row['env_steps'] > 20_000:  # Compilation and evaluation amortized.
-      rate = row['cpu_minutes'] * 60_000 / row['env_steps']
-      rates[row['algo']].append(rate)
-      rates[agents.get(row['algo']).kind].append(rate)
+    measured(
+      row['algo'], row['domain'], row['task'], row['env_steps'],
+      row['cpu_minutes'],
+    )  # fmt: skip
   todo = [run for run in baselines.runs() if not baselines.done(run)]
+  done_steps = {}
+  for run in todo:
+    log = baselines._log(run)  # A run in progress measures its own cost.
+    done_steps[run] = log[-1]['env_steps'] if log else 0
+    if log:
+      measured(
+        run.algo, run.domain, run.task, log[-1]['env_steps'],
+        log[-1]['cpu_time'] / 60,
+      )  # fmt: skip
   steps, minutes = collections.Counter(), collections.Counter()
   for run in todo:
-    kind = agents.get(run.algo).kind
-    if kind == agents.IMITATION:  # Epochs of seconds each.
+    if agents.get(run.algo).kind == agents.IMITATION:  # Epochs, seconds.
       continue
-    budget = run.config().steps
-    steps[run.algo] += budget
-    rate = rates.get(run.algo) or rates.get(kind)
+    left = max(run.config().steps - done_steps[run], 0)
+    steps[run.algo] += left
+    rate = next(
+      (rates[key] for key in keys(run.algo, run.domain, run.task)
+       if rates.get(key)),
+      None,
+    )  # fmt: skip
     if rate:
-      minutes[run.algo] += budget * statistics.median(rate) / 60_000
+      minutes[run.algo] += left * statistics.median(rate) / 60_000
   parts = ', '.join(
     f'{steps[algo]:,} env steps of {algo}'
     + (f' ({minutes[algo] / 60:,.1f} CPU h)' if algo in minutes else '')
     for algo in sorted(steps)
   )
   return (
-    f'{len(todo)} runs to do: at most {parts or "nothing"}, at the median '
-    f"CPU ms per env step of the agent's records; about "
-    f'{sum(minutes.values()) / 60:,.1f} CPU hours at full budgets (runs '
-    f'solved sooner stop sooner).'
+    f'{len(todo)} runs to do: at most {parts or "nothing"} left, at the '
+    'median CPU ms per env step of the agent on the same task (its '
+    'records and runs in progress; else on the same robot, else any); '
+    f'about {sum(minutes.values()) / 60:,.1f} CPU hours at full budgets '
+    '(runs solved sooner stop sooner).'
   )
 
 
