@@ -148,7 +148,8 @@ def select(pattern: str | None) -> list[Run]:
   return chosen
 
 
-def _log(run: Run) -> list[dict]:
+def evaluations(run: Run) -> list[dict]:
+  """The run's training evaluations so far (none before it starts)."""
   from robel_dm.learning import curves, train  # noqa: PLC0415
 
   path = run.directory / train.EVAL_LOG
@@ -219,7 +220,7 @@ def done(run: Run) -> bool:
 def _curve_end(run: Run, rows: list[dict] | None = None) -> int | float:
   """The last evaluation's env steps (epochs for bc), from the run's log
   or from its `rows` if already read."""
-  last = (_log(run) if rows is None else rows)[-1]
+  last = (evaluations(run) if rows is None else rows)[-1]
   return last.get('epoch', last['env_steps'])
 
 
@@ -251,7 +252,7 @@ def _confirmed(run: Run, log=print) -> bool:
     if path.is_file()
     else []
   )
-  rows = _log(run)
+  rows = evaluations(run)
   steps = _curve_end(run, rows)
   policy_steps = _best_policy_steps(rows, steps)
   if any(
@@ -402,7 +403,7 @@ def train_run(run: Run, log=print) -> dict | None:
 
 def record(run: Run) -> dict:
   """The run's line of docs/baselines.json."""
-  log = _log(run)
+  log = evaluations(run)
   final = json.loads((run.directory / FINAL).read_text())
   last = log[-1]
   solved_at = next(

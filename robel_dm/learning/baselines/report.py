@@ -136,7 +136,7 @@ def remaining(rows: list[dict]) -> str:
   todo = [run for run in baselines.runs() if not baselines.done(run)]
   done_steps = {}
   for run in todo:
-    log = baselines._log(run)  # A run in progress measures its own cost.
+    log = baselines.evaluations(run)  # A run in progress measures its own cost.
     done_steps[run] = log[-1]['env_steps'] if log else 0
     if log:
       measured(
