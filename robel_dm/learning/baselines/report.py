@@ -112,26 +112,27 @@ def progress(rows: list[dict]) -> str:
 def remaining(rows: list[dict]) -> str:
   """What the runs still to do cost at most: the steps left of their
   budgets, at the median CPU time per env step of the same agent on the
-  same task (its records, and its runs in progress), else on the same
+  same task and valve (its records, and its runs in progress), else on the same
   robot, else anywhere (else of the same kind of agent): an env step of
   Walk RandomDynamics, on its bumps, costs a multiple of one of Pose."""
   from robel_dm.learning import agents  # noqa: PLC0415
 
-  def keys(algo: str, domain: str, task: str) -> tuple:
+  def keys(algo: str, domain: str, task: str, task_kwargs: dict) -> tuple:
     kind = agents.get(algo).kind
-    return (algo, domain, task), (algo, domain), algo, kind
+    variant = json.dumps(task_kwargs, sort_keys=True)  # The valve.
+    return (algo, domain, task, variant), (algo, domain), algo, kind
 
   rates = collections.defaultdict(list)  # key -> CPU ms per env step
 
-  def measured(algo, domain, task, env_steps, cpu_minutes) -> None:
+  def measured(algo, domain, task, kwargs, env_steps, cpu_minutes) -> None:
     if env_steps > 20_000:  # Compilation and evaluation amortized.
-      for key in keys(algo, domain, task):
+      for key in keys(algo, domain, task, kwargs):
         rates[key].append(cpu_minutes * 60_000 / env_steps)
 
   for row in rows:
     measured(
-      row['algo'], row['domain'], row['task'], row['env_steps'],
-      row['cpu_minutes'],
+      row['algo'], row['domain'], row['task'], row['task_kwargs'],
+      row['env_steps'], row['cpu_minutes'],
     )  # fmt: skip
   todo = [run for run in baselines.runs() if not baselines.done(run)]
   done_steps = {}
@@ -140,8 +141,8 @@ def remaining(rows: list[dict]) -> str:
     done_steps[run] = log[-1]['env_steps'] if log else 0
     if log:
       measured(
-        run.algo, run.domain, run.task, log[-1]['env_steps'],
-        log[-1]['cpu_time'] / 60,
+        run.algo, run.domain, run.task, run.task_kwargs,
+        log[-1]['env_steps'], log[-1]['cpu_time'] / 60,
       )  # fmt: skip
   steps, minutes = collections.Counter(), collections.Counter()
   for run in todo:
@@ -150,7 +151,8 @@ def remaining(rows: list[dict]) -> str:
     left = max(run.config().steps - done_steps[run], 0)
     steps[run.algo] += left
     rate = next(
-      (rates[key] for key in keys(run.algo, run.domain, run.task)
+      (rates[key] for key in keys(run.algo, run.domain, run.task,
+                                  run.task_kwargs)
        if rates.get(key)),
       None,
     )  # fmt: skip
