@@ -160,11 +160,16 @@ def finished(run: Run) -> bool:
   return (run.directory / FINAL).is_file()
 
 
+def variant(task_kwargs: dict[str, Any]) -> str:
+  """Task arguments as a key (which valve, for the valve tasks)."""
+  return json.dumps(task_kwargs, sort_keys=True)
+
+
 def _key(row: dict) -> tuple:
   return (
     row['domain'],
     row['task'],
-    json.dumps(row['task_kwargs'], sort_keys=True),
+    variant(row['task_kwargs']),
     row['algo'],
     row['seed'],
   )

@@ -112,14 +112,14 @@ def progress(rows: list[dict]) -> str:
 def remaining(rows: list[dict]) -> str:
   """What the runs still to do cost at most: the steps left of their
   budgets, at the median CPU time per env step of the same agent on the
-  same task and valve (its records, and its runs in progress), else on the same
-  robot, else anywhere (else of the same kind of agent): an env step of
-  Walk RandomDynamics, on its bumps, costs a multiple of one of Pose."""
+  same task and valve (its records, and its runs in progress), else on
+  the same robot, else anywhere (else of the same kind of agent): an env
+  step of Walk RandomDynamics, on its bumps, costs a multiple of Pose's."""
   from robel_dm.learning import agents  # noqa: PLC0415
 
   def keys(algo: str, domain: str, task: str, task_kwargs: dict) -> tuple:
     kind = agents.get(algo).kind
-    variant = json.dumps(task_kwargs, sort_keys=True)  # The valve.
+    variant = baselines.variant(task_kwargs)
     return (algo, domain, task, variant), (algo, domain), algo, kind
 
   rates = collections.defaultdict(list)  # key -> CPU ms per env step
