@@ -429,6 +429,27 @@ def test_list_prices_the_steps_left_at_the_same_task_and_robot(sandbox, capsys):
   assert '300,000 env steps of sac (2.0 CPU h)' in capsys.readouterr().out
 
 
+def test_list_does_not_price_a_valve4_run_at_the_3_prong_valve_rate(
+  sandbox, capsys
+):
+  baselines.PLAN['tasks'] = {
+    'dclaw/turn_fixed': {'steps': 600_000, 'eval_every': 10_000}
+  }
+  baselines.PLAN.update(valve4=['dclaw/turn_fixed'], every_agent=[])
+  # Turn on the 3-prong valve at 60 CPU ms per env step; the rest of the
+  # robot's records at 6.
+  baselines.merge_results([
+    _cost('dclaw', 'turn_fixed', 40_000, 40.0),
+    _cost('dclaw', 'pose_fixed', 40_000, 4.0),
+    _cost('dclaw', 'pose_random', 40_000, 4.0),
+  ])  # fmt: skip
+  assert cli.main(['list']) == 0
+  out = capsys.readouterr().out
+  assert 'dclaw_turn_fixed_valve4_sac_seed0' in out
+  # The 4-prong run has no record of its own: the robot's median, 6 ms.
+  assert '600,000 env steps of sac (1.0 CPU h)' in out
+
+
 def test_the_table_fans_out_over_ray(sandbox):
   pytest.importorskip('ray')
   records = baselines.train_ray('local', 'dclaw_pose_*_sac_seed0')
