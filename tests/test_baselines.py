@@ -450,6 +450,14 @@ def test_list_does_not_price_a_valve4_run_at_the_3_prong_valve_rate(
   assert '600,000 env steps of sac (1.0 CPU h)' in out
 
 
+def test_list_says_when_nothing_is_left(sandbox, capsys):
+  baselines.PLAN.update(tasks={}, every_agent=[])
+  assert cli.main(['list']) == 0
+  assert 'No runs to do: every run of the plan is done.' in (
+    capsys.readouterr().out
+  )
+
+
 def test_the_table_fans_out_over_ray(sandbox):
   pytest.importorskip('ray')
   records = baselines.train_ray('local', 'dclaw_pose_*_sac_seed0')

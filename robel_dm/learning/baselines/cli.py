@@ -28,9 +28,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == 'list':
       for run in baselines.runs():
         print(f'{run.name:50s} {"done" if baselines.done(run) else ""}')
-      if baselines.RESULTS.is_file():
-        rows = json.loads(baselines.RESULTS.read_text())
-        print(report.remaining(rows))
+      rows = (
+        json.loads(baselines.RESULTS.read_text())
+        if baselines.RESULTS.is_file()
+        else []
+      )
+      print(report.remaining(rows))
     elif args.command == 'report':
       report.write()
     elif args.ray_address:

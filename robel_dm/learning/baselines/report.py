@@ -135,6 +135,8 @@ def remaining(rows: list[dict]) -> str:
       row['env_steps'], row['cpu_minutes'],
     )  # fmt: skip
   todo = [run for run in baselines.runs() if not baselines.done(run)]
+  if not todo:
+    return 'No runs to do: every run of the plan is done.'
   done_steps = {}
   for run in todo:
     log = baselines.evaluations(run)  # A run in progress measures its own cost.
