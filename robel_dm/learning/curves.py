@@ -3,6 +3,7 @@
 from collections.abc import Sequence
 import json
 import pathlib
+from typing import Any
 
 
 def _pyplot():
@@ -50,54 +51,119 @@ def plot_run(log_path: pathlib.Path, output: pathlib.Path, title: str):
   pyplot.close(figure)
 
 
+_CAPTION = (
+  'thick: mean over seeds; thin: each seed; band: worst to best seed; '
+  'a seed that stopped on success keeps its last value'
+)
+
+
+def carried_forward(logs: Sequence[list[dict]]) -> tuple[Any, Any]:
+  """Puts one agent's seeds on a shared grid of env steps.
+
+  Every evaluation step of any seed is a grid point. Between its own
+  evaluations a seed is interpolated; after its last one it keeps its last
+  success rate (runs stop at their first evaluation at 80% success, so a
+  run that stopped early stopped on success).
+
+  Args:
+    logs: one evaluation log per seed, rows with 'env_steps' and
+      'success_rate'; empty logs are skipped.
+
+  Returns:
+    The grid (steps, ascending) and a seeds x grid array of success rates,
+    without NaN.
+  """
+  import numpy as np  # noqa: PLC0415
+
+  logs = [sorted(log, key=lambda row: row['env_steps']) for log in logs if log]
+  grid = np.unique([row['env_steps'] for log in logs for row in log])
+  values = np.array(
+    [
+      np.interp(
+        grid,
+        [row['env_steps'] for row in log],
+        [row['success_rate'] for row in log],
+      )
+      for log in logs
+    ]
+  ).reshape(len(logs), len(grid))
+  return grid, values
+
+
+def _log_steps(axis: Any, steps: Sequence[float]):
+  """Log-scales the step axis, keeping step 0: linear from 0 to the power
+  of ten at or below the first positive step, logarithmic beyond it."""
+  import numpy as np  # noqa: PLC0415
+
+  positive = [step for step in steps if step > 0] or [1e3]
+  low = int(np.floor(np.log10(min(positive))))
+  high = int(np.floor(np.log10(max(positive))))
+  axis.set_xscale('symlog', linthresh=10.0**low, linscale=0.3)
+  axis.set_xticks([0] + [10.0**power for power in range(low, high + 1)])
+  axis.set_xlim(0, max(positive) * 1.15)
+
+
+def task_figure(runs: dict[str, Sequence[list[dict]]], title: str) -> Any:
+  """Success against env steps (log scale), per agent: each seed thin, the
+  mean over seeds thick, shaded from the worst seed to the best.
+
+  Args:
+    runs: agent name -> one evaluation log per seed.
+    title: the figure's title.
+
+  Returns:
+    The matplotlib Figure; the caller saves and closes it.
+  """
+  pyplot = _pyplot()
+  figure, axis = pyplot.subplots(figsize=(6, 4))
+  steps = []
+  for name, logs in sorted(runs.items()):
+    grid, values = carried_forward(logs)
+    if not len(values):
+      continue
+    steps.extend(grid)
+    line = axis.plot(
+      grid,
+      values.mean(axis=0),
+      linewidth=2.2,
+      label=f'{name} ({len(values)} seeds)',
+    )[0]
+    colour = line.get_color()
+    for seed in values:
+      axis.plot(grid, seed, color=colour, linewidth=0.8, alpha=0.6)
+    axis.fill_between(
+      grid,
+      values.min(axis=0),
+      values.max(axis=0),
+      color=colour,
+      alpha=0.15,
+      linewidth=0,
+    )
+  _log_steps(axis, steps)
+  axis.set(
+    xlabel='env steps (log scale)',
+    ylabel='success rate',
+    ylim=(-0.03, 1.03),
+    title=title,
+  )
+  axis.grid(alpha=0.3, which='both')
+  if axis.get_legend_handles_labels()[0]:
+    axis.legend(fontsize=8, loc='upper left')
+  figure.text(0.5, 0.01, _CAPTION, ha='center', va='bottom', fontsize=6.5)
+  figure.tight_layout(rect=(0, 0.04, 1, 1))
+  return figure
+
+
 def plot_task(
   runs: dict[str, Sequence[list[dict]]], output: pathlib.Path, title: str
 ):
-  """Success against env steps, one line per agent: the mean over its
-  seeds, shaded from the worst seed to the best (like ROBEL's figures).
+  """Writes `task_figure` as a PNG.
 
   Args:
     runs: agent name -> one evaluation log per seed.
     output: the PNG to write.
     title: the figure's title.
   """
-  import numpy as np  # noqa: PLC0415
-
-  pyplot = _pyplot()
-  figure, axis = pyplot.subplots(figsize=(5.5, 3.6))
-  for name, logs in sorted(runs.items()):
-    logs = [log for log in logs if log]
-    if not logs:
-      continue
-    grid = sorted({row['env_steps'] for log in logs for row in log})
-    values = np.array(
-      [
-        np.interp(
-          grid,
-          [row['env_steps'] for row in log],
-          [row['success_rate'] for row in log],
-          right=np.nan,
-        )
-        for log in logs
-      ]
-    )
-    mean = np.nanmean(values, axis=0)
-    line = axis.plot(grid, mean, label=f'{name} ({len(logs)} seeds)')[0]
-    axis.fill_between(
-      grid,
-      np.nanmin(values, axis=0),
-      np.nanmax(values, axis=0),
-      color=line.get_color(),
-      alpha=0.2,
-    )
-  axis.set(
-    xlabel='env steps',
-    ylabel='success rate',
-    ylim=(-0.03, 1.03),
-    title=title,
-  )
-  axis.grid(alpha=0.3)
-  axis.legend(fontsize=8, loc='lower right')
-  figure.tight_layout()
+  figure = task_figure(runs, title)
   figure.savefig(output, dpi=90)
-  pyplot.close(figure)
+  _pyplot().close(figure)
