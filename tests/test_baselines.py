@@ -16,6 +16,7 @@ from robel_dm.learning.baselines import (  # noqa: E402
   cli,
   demonstrations,
   report,
+  selection,
 )
 
 FIELDS = {'domain', 'task', 'task_kwargs', 'algo', 'seed', 'env_steps',
@@ -98,7 +99,8 @@ def test_a_run_stops_after_a_streak_of_solved_evaluations(
 def sandbox(tmp_path, monkeypatch):
   """The table's paths and a tiny plan (pose and stand only)."""
   plan = copy.deepcopy(baselines.PLAN)
-  plan.update(seeds=[0], final_episodes_random=3, eval_episodes_random=2,
+  plan.update(seeds=[0], confirm_episodes_random=3, eval_episodes_random=2,
+              validation_episodes_random=3, test_episodes_random=4,
               demo_episodes=2, bc_epochs=20)  # fmt: skip
   plan['tasks'] = {
     'dclaw/pose_fixed': {'steps': 16, 'eval_every': 16},
@@ -116,20 +118,42 @@ def sandbox(tmp_path, monkeypatch):
   return tmp_path
 
 
-def test_a_run_ends_with_a_fresh_evaluation_and_a_full_record(sandbox):
+def test_a_run_ends_with_validation_then_one_test_reading(sandbox, monkeypatch):
+  from robel_dm import evaluate  # noqa: PLC0415
+
+  real, seeds = evaluate.evaluate, []
+
+  def spy(*args, **kwargs):
+    seeds.append(kwargs['seed'])
+    return real(*args, **kwargs)
+
+  monkeypatch.setattr(evaluate, 'evaluate', spy)
   run = baselines.Run('dclaw', 'pose_random', 'sac', 0)
   record = baselines.train_run(run, log=lambda line: None)
   assert set(record) >= FIELDS
-  assert record['env_steps'] == 16 and record['final_episodes'] == 3
+  assert record['protocol'] == baselines.PROTOCOL == 2
+  assert record['env_steps'] == 16 and record['final_episodes'] == 4
   assert not record['deterministic']
-  final = json.loads((run.directory / baselines.FINAL).read_text())
-  assert final['episodes'] == 3
-  # A finished run is not trained again.
+  low, high = record['success_interval']
+  assert 0 <= low <= record['success'] <= high <= 1 and high - low > 0.3
+  assert record['validation']['episodes'] == 3
+  # Validation, then the test, last, on seeds of its own.
+  test_seed = baselines.TEST_SEED_OFFSET
+  assert seeds[-2:] == [baselines.VALIDATION_SEED_OFFSET, test_seed]
+  assert record['test_seed'] == test_seed and seeds.count(test_seed) == 1
+  # A finished run is neither trained nor read again.
   assert baselines.train_run(run, log=print) == record
+  assert seeds.count(test_seed) == 1
   fixed = baselines.train_run(
     baselines.Run('dclaw', 'pose_fixed', 'sac', 0), log=lambda line: None
   )
   assert fixed['deterministic'] and fixed['final_episodes'] == 1
+  assert fixed['success_interval'] == [fixed['success']] * 2
+
+
+def test_wilson_interval():
+  assert baselines.interval(0.8, 50) == pytest.approx((0.670, 0.888), abs=1e-3)
+  assert baselines.interval(1.0, 100)[1] == 1.0
 
 
 def _lucky_run(monkeypatch, rising: bool):
@@ -160,14 +184,15 @@ def test_an_early_stop_must_hold_on_fresh_episodes(sandbox, monkeypatch):
   assert record['env_steps'] == 32 and record['success'] < 0.8
   assert [c['env_steps'] for c in record['confirmations']] == [8, 16, 24]
   assert sum('training on' in line for line in lines) == 3
-  # Each check has episodes of its own, apart from the final evaluation's.
+  # Each check has episodes of its own, apart from validation and test.
   seeds = [c['seed'] for c in record['confirmations']]
-  assert len(set(seeds)) == 3 and baselines.FINAL_SEED_OFFSET not in seeds
+  assert len(set(seeds)) == 3
+  assert not {record['test_seed'], record['validation']['seed']} & set(seeds)
   assert baselines.done(run)
-  # A record that stopped short of its budget unsolved is not settled: it
-  # trains on (from the start where its folder is gone).
-  short = dict(record, curve=record['curve'][:3])
-  baselines.merge_results([short])
+  # A record of the first protocol (no test episodes of its own) is made
+  # again, from the start where its folder is gone.
+  old = {k: v for k, v in record.items() if k != 'protocol'}
+  baselines.merge_results([old])
   shutil.rmtree(baselines.RUNS_DIR)
   assert not baselines.settled(run) and not baselines.done(run)
 
@@ -216,7 +241,7 @@ def test_a_shipped_policy_demonstrates_in_a_checkout_without_runs(
   )
   shipped = baselines.ROOT / 'policies' / 'dclaw_turn_fixed.npz'
   shutil.copy(shipped, sandbox / 'policies' / 'dclaw_turn_fixed.npz')
-  assert baselines.best_policy('dclaw', 'turn_fixed') == (
+  assert selection.best_policy('dclaw', 'turn_fixed') == (
     sandbox / 'policies' / 'dclaw_turn_fixed.npz'
   )
   run = baselines.Run('dclaw', 'turn_fixed', 'bc', 0)
@@ -273,45 +298,62 @@ def test_a_task_without_a_controller_has_a_pinned_solved_demonstrator(key):
   assert len(rows) == 1 and baselines.solved(rows[0]), rows
 
 
-def test_the_best_solved_policy_at_hand_is_shipped(sandbox):
-  def row(algo, seed, success, score):
-    task = {'domain': 'dclaw', 'task': 'pose_random', 'task_kwargs': {}}
-    return task | {'algo': algo, 'seed': seed, 'success': success,
-                   'score': score}  # fmt: skip
+def _row(algo, seed, validation, test, steps=1000, cpu=1.0) -> dict:
+  """A Pose Random record: `validation` and `test` success."""
+  return {
+    'domain': 'dclaw', 'task': 'pose_random', 'task_kwargs': {},
+    'algo': algo, 'seed': seed, 'protocol': 2, 'success': test,
+    'score': 0.0, 'validation': {'success': validation, 'score': 0.0},
+    'steps_to_80': steps, 'cpu_minutes': cpu,
+  }  # fmt: skip
 
+
+def test_the_agent_and_run_are_chosen_on_validation_not_test():
+  baselines.PLAN['seeds']  # The real plan: 3 seeds.
+  by_agent = {
+    # Best test readings, but a seed short on validation.
+    'trpo': [_row('trpo', s, v, 1.0) for s, v in enumerate((0.9, 0.9, 0.7))],
+    'sac': [_row('sac', s, v, 0.8) for s, v in enumerate((0.9, 0.95, 0.85))],
+    # As good on validation, but slower to 80%.
+    'bc': [_row('bc', s, v, 0.8, steps=9000)
+           for s, v in enumerate((0.9, 0.95, 0.85))],
+  }  # fmt: skip
+  choice = selection.choose(by_agent)
+  assert choice.algo == 'sac' and choice.shipped['seed'] == 1
+  assert 'solves 3 of 3 seeds on validation' in choice.why
+  # An unsolved seed counts as more than the budget in the median.
+  group = [_row('sac', s, 0.9, t) for s, t in enumerate((0.9, 0.5, 0.5))]
+  assert selection.median_steps_to_80(group) == selection.UNSOLVED
+  # Nothing solved on validation: nothing shipped.
+  low = {'sac': [_row('sac', s, 0.5, 0.9) for s in range(3)]}
+  assert selection.choose(low).shipped is None
+
+
+def test_the_chosen_run_is_shipped_when_its_policy_is_at_hand(sandbox):
   def policy(path, algo, seed):
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez(path, metadata=json.dumps({'algo': algo, 'seed': seed}))
 
-  baselines.RESULTS.parent.mkdir(parents=True)
-  baselines.RESULTS.write_text(json.dumps([
-    row('sac', 0, 0.9, 0.5), row('trpo', 0, 0.9, 0.6),
-    row('sac', 1, 0.84, 0.9), row('bc', 0, 0.7, 0.99),
-  ]))  # fmt: skip
-  shipped = baselines.POLICIES / 'dclaw_pose_random.npz'
-
   def run(algo, seed):
     return baselines.Run('dclaw', 'pose_random', algo, seed).directory
 
-  # Only unsolved and lesser rows have their runs here: the shipped policy
-  # (the best row's whose policy is at hand) stays.
-  policy(run('bc', 0) / 'policy_best.npz', 'bc', 0)
-  policy(run('sac', 1) / 'policy_best.npz', 'sac', 1)
+  rows = [_row('sac', 0, 0.9, 0.9), _row('trpo', 0, 0.95, 0.7)]
+  baselines.RESULTS.parent.mkdir(parents=True)
+  baselines.RESULTS.write_text(json.dumps(rows))
+  shipped = baselines.POLICIES / 'dclaw_pose_random.npz'
+  # The rule's run (trpo seed 0) is not at hand: what is shipped stays.
   policy(shipped, 'sac', 0)
-  assert baselines.best_policy('dclaw', 'pose_random') == shipped
-  assert report.ship(json.loads(baselines.RESULTS.read_text())) == [
-    'dclaw/pose_random (sac, seed 0)'
+  policy(run('sac', 0) / 'policy_best.npz', 'sac', 0)
+  assert selection.best_policy('dclaw', 'pose_random') is None
+  assert report.ship(rows) == [
+    'dclaw/pose_random (sac, seed 0; the rule ships trpo seed 0, whose run '
+    'is not here: baselines train --only=dclaw_pose_random_trpo_seed0 '
+    '--force)'
   ]
-  # A better row's run replaces it (equal success: the higher score).
   policy(run('trpo', 0) / 'policy_best.npz', 'trpo', 0)
-  assert report.ship(json.loads(baselines.RESULTS.read_text())) == [
-    'dclaw/pose_random (trpo, seed 0)'
-  ]
-  # A shipped policy whose row is no longer solved gives way too.
-  policy(shipped, 'sac', 2)
-  shutil.rmtree(run('trpo', 0))
-  assert baselines.best_policy('dclaw', 'pose_random') == (
-    run('sac', 1) / 'policy_best.npz'
+  assert report.ship(rows) == ['dclaw/pose_random (trpo, seed 0)']
+  assert selection.best_policy('dclaw', 'pose_random') == (
+    run('trpo', 0) / 'policy_best.npz'
   )
 
 
@@ -349,28 +391,39 @@ def test_a_recorded_run_is_not_trained_again_without_its_folder(sandbox):
   assert json.loads(baselines.RESULTS.read_text()) == rows
 
 
-def test_an_unsolved_run_trains_on_when_the_plan_raises_its_budget(sandbox):
+def test_a_recorded_run_stands_when_the_plan_raises_its_budget(sandbox):
+  # Its test episodes were read: training it on would make the test a
+  # stopping rule. A longer run is a new run (--force).
   name = 'dclaw_pose_random_sac_seed0'
   run = baselines.Run('dclaw', 'pose_random', 'sac', 0)
   baselines.train_queue(0, 1, name, None)
   row = json.loads(baselines.RESULTS.read_text())[0]
-  assert row['budget'] == 16 and baselines.done(run)
-  unsolved = row['success'] < baselines.PLAN['solved']
   baselines.PLAN['tasks']['dclaw/pose_random']['steps'] = 32
-  # Unsolved at 16 steps: the run goes on to the new budget, from its
-  # folder; a solved one would stand.
-  assert baselines.done(run) is not unsolved and unsolved
+  assert baselines.done(run)
   baselines.train_queue(0, 1, name, None)
-  row = json.loads(baselines.RESULTS.read_text())[0]
-  assert (row['budget'], row['env_steps']) == (32, 32)
-  # Without its folder, a recorded run is judged by its record alone.
+  assert json.loads(baselines.RESULTS.read_text())[0] == row
   shutil.rmtree(baselines.RUNS_DIR)
   assert baselines.done(run)
-  baselines.PLAN['tasks']['dclaw/pose_random']['steps'] = 48
-  assert not baselines.done(run) and not baselines.settled(run)
-  solved = dict(row, success=1.0)
-  baselines.merge_results([solved])
-  assert baselines.settled(run)
+
+
+def test_a_recorded_run_chosen_by_name_says_so_and_force_makes_it_again(
+  sandbox, capsys
+):
+  name = 'dclaw_pose_fixed_sac_seed0'
+  assert cli.main(['train', f'--only={name}']) == 0
+  row = json.loads(baselines.RESULTS.read_text())[0]
+  capsys.readouterr()
+  assert cli.main(['train', f'--only={name}']) == 0
+  out = capsys.readouterr().out
+  assert f'{name}: recorded (success' in out and '--force makes it' in out
+  (baselines.RUNS_DIR / name / 'marker').write_text('')
+  assert cli.main(['train', f'--only={name}', '--force']) == 0
+  assert not (baselines.RUNS_DIR / name / 'marker').exists()
+  again = json.loads(baselines.RESULTS.read_text())[0]
+  # Deterministic: the same record, made again.
+  keep = ('success', 'score', 'curve', 'env_steps', 'violations')
+  assert {k: again[k] for k in keep} == {k: row[k] for k in keep}
+  assert cli.main(['train', '--force']) == 2  # --force needs --only.
 
 
 def test_a_queue_takes_its_share_and_bad_selections_are_refused(sandbox):
@@ -384,7 +437,7 @@ def test_list_says_what_the_runs_left_cost(sandbox, capsys):
   baselines.merge_results([{
     'domain': 'dclaw', 'task': 'pose_fixed', 'task_kwargs': {}, 'algo': 'sac',
     'seed': 0, 'success': 1.0, 'budget': 16, 'env_steps': 40_000,
-    'cpu_minutes': 4.0, 'curve': [[0, 0.0], [40_000, 1.0]],
+    'cpu_minutes': 4.0, 'curve': [[0, 0.0], [40_000, 1.0]], 'protocol': 2,
   }])  # fmt: skip
   assert cli.main(['list']) == 0
   out = capsys.readouterr().out
@@ -402,6 +455,7 @@ def _cost(domain, task, env_steps, cpu_minutes) -> dict:
     'domain': domain, 'task': task, 'task_kwargs': {}, 'algo': 'sac',
     'seed': 0, 'success': 1.0, 'budget': env_steps, 'env_steps': env_steps,
     'cpu_minutes': cpu_minutes, 'curve': [[0, 0.0], [env_steps, 1.0]],
+    'protocol': 2,
   }  # fmt: skip
 
 

@@ -10,12 +10,13 @@ r"""The baseline table: its runs, how to run them, and its report.
     python -m robel_dm.learning.baselines report
 
 The runs come from `plan.json` (tasks, budgets, seeds, agents). Each run
-trains with `robel_dm.learning.train` into `runs/baselines/<name>/`, then
-its best policy is evaluated afresh (`final.json`): once on a Fixed task
-(whose episodes are all the same one, the simulation being deterministic),
-on `final_episodes_random` episodes with unused seeds on the others.
-Demonstrations (bc, sac_demos) come from `demonstrations`; a run whose
-demonstrations cannot be made yet waits for a later pass.
+trains with `robel_dm.learning.train` into `runs/baselines/<name>/`.
+Every decision about a run (when it stops, which of its policies it keeps,
+which run's policy is shipped) is made on validation episodes; its
+reported success is then read once, on test episodes no decision sees
+(`PROTOCOL`, docs/baselines.md "How a run is scored"). Demonstrations
+(bc, sac_demos) come from `demonstrations`; a run whose demonstrations
+cannot be made yet waits for a later pass.
 """
 
 import dataclasses
@@ -38,12 +39,20 @@ RESULTS = ROOT / 'docs' / 'baselines.json'
 DOC = ROOT / 'docs/baselines.md'
 FIGURES = ROOT / 'docs' / 'baselines'
 POLICIES = ROOT / 'policies'
-FINAL = 'final.json'
 COMMIT = 'commit.txt'
-# Final evaluations are seeded apart from training and training evaluations.
-FINAL_SEED_OFFSET = 2_000_000
-CONFIRM_SEED_OFFSET = 6_000_000
 CONFIRMATIONS = 'confirmations.jsonl'
+VALIDATION = 'validation.json'
+TEST = 'test.json'
+# The evaluation protocol of the records (docs/baselines.md "How a run is
+# scored"): 1, a final evaluation that could send a run back to training;
+# 2, decisions on validation episodes, success read once on test episodes.
+PROTOCOL = 2
+# Episode seeds of each use, apart from each other and from training's
+# (seeds 0-2) and its evaluations' (train.EVAL_SEED_OFFSET).
+VALIDATION_SEED_OFFSET = 2_000_000
+DEMO_SEED_OFFSET = 4_000_000
+CONFIRM_SEED_OFFSET = 6_000_000
+TEST_SEED_OFFSET = 9_000_000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -157,7 +166,8 @@ def evaluations(run: Run) -> list[dict]:
 
 
 def finished(run: Run) -> bool:
-  return (run.directory / FINAL).is_file()
+  """Whether the run's test episodes were read (it is final)."""
+  return (run.directory / TEST).is_file()
 
 
 def variant(task_kwargs: dict[str, Any]) -> str:
@@ -195,31 +205,18 @@ def _trained(curve_end: int | float, run: Run) -> bool:
   return curve_end >= run.config().steps
 
 
-def _short_of_plan(success: float, curve_end: int | float, run: Run) -> bool:
-  """Whether a result needs more training: unsolved, and trained less than
-  the plan now gives the run (the plan raised its budget, or it stopped
-  early on a streak of evaluations its final evaluation did not bear out)."""
-  return success < PLAN['solved'] and not _trained(curve_end, run)
-
-
 def settled(run: Run) -> bool:
-  """Whether the table holds the run's result under the plan as it is:
-  recorded, and solved or trained to the plan's budget. A run left
-  unsolved short of the plan's budget goes on (from its folder, or from
-  the start where the folder is gone); a solved one would have stopped at
-  the same point under a larger budget, so it stands."""
+  """Whether the table holds the run's result under the current protocol.
+  A record of an earlier protocol is made again (from its folder, or from
+  the start where the folder is gone: runs are deterministic)."""
   row = _recorded_row(run)
-  return row is not None and not _short_of_plan(
-    row['success'], row['curve'][-1][0], run
-  )
+  return row is not None and row.get('protocol', 1) >= PROTOCOL
 
 
 def done(run: Run) -> bool:
-  """Whether the run needs no more training under the plan."""
-  if finished(run):
-    final = json.loads((run.directory / FINAL).read_text())
-    return not _short_of_plan(final['success'], _curve_end(run), run)
-  return settled(run)
+  """Whether the run needs no more training: its test was read, or its
+  record is of the current protocol."""
+  return finished(run) or settled(run)
 
 
 def _curve_end(run: Run, rows: list[dict] | None = None) -> int | float:
@@ -240,7 +237,7 @@ def _best_policy_steps(rows: list[dict], until: int | float) -> int:
 
 def _confirmed(run: Run, log=print) -> bool:
   """Whether the best policy of a Random-task run that stopped early holds
-  the solved rate on `final_episodes_random` fresh episodes (seeded apart
+  the solved rate on `confirm_episodes_random` fresh episodes (seeded apart
   from training, its evaluations and the final evaluation, and apart from
   each earlier confirmation). Its 10-episode evaluations, always the same
   episodes, can read 0.8 twice by luck: two such stops gave 0.64 and 0.52
@@ -270,7 +267,7 @@ def _confirmed(run: Run, log=print) -> bool:
     )
     return False
   earlier = len(checked)
-  episodes = PLAN['final_episodes_random']
+  episodes = PLAN['confirm_episodes_random']
   seed = CONFIRM_SEED_OFFSET + run.seed * 10_000 + earlier * episodes
   results = evaluate.evaluate(
     run.domain,
@@ -312,53 +309,15 @@ def shipped_metadata(domain: str, task: str) -> dict | None:
     return json.loads(str(arrays['metadata']))
 
 
-def best_policy(
-  domain: str, task: str, rows: list[dict] | None = None
-) -> pathlib.Path | None:
-  """The policy of the task's best solved row (valve3; highest final
-  success, then mean score) that is at hand: its run's best policy, or the
-  shipped one if it is that row's. Run folders are not committed, so in a
-  fresh clone the shipped policy stands until a better row's run is made.
-  Without records, the shipped policy. `rows`: the records, if already
-  read."""
-  if rows is None:
-    rows = json.loads(RESULTS.read_text()) if RESULTS.is_file() else []
-  best_first = sorted(
-    (
-      row
-      for row in rows
-      if (row['domain'], row['task']) == (domain, task)
-      and not row['task_kwargs']
-      and solved(row)
-    ),
-    key=lambda row: (row['success'], row['score']),
-    reverse=True,
-  )
-  shipped = POLICIES / f'{domain}_{task}.npz'
-  metadata = shipped_metadata(domain, task)
-  for row in best_first:
-    source = Run(domain, task, row['algo'], row['seed']).directory
-    if (source / 'policy_best.npz').is_file():
-      return source / 'policy_best.npz'
-    if metadata and (metadata['algo'], metadata['seed']) == (
-      row['algo'],
-      row['seed'],
-    ):
-      return shipped
-  return shipped if metadata and not best_first else None
-
-
 def train_run(run: Run, log=print) -> dict | None:
-  """Trains `run` (resuming), evaluates its best policy, returns its
-  record; None if its demonstrations cannot be made yet."""
-  from robel_dm import evaluate, policies  # noqa: PLC0415
+  """Trains `run` (resuming) until its validation says stop, keeps its best
+  policy, reads its validation and then, once, its test episodes; returns
+  its record. None if its demonstrations cannot be made yet."""
+  from robel_dm import policies  # noqa: PLC0415
   from robel_dm.learning import agents, train  # noqa: PLC0415
 
   if finished(run):
-    if done(run):
-      return record(run)
-    # The plan raised an unsolved run's budget: it trains on from here.
-    (run.directory / FINAL).unlink()
+    return record(run)
   demos = ()
   if agents.get(run.algo).needs_demos:
     from robel_dm.learning.baselines import demonstrations  # noqa: PLC0415
@@ -385,36 +344,73 @@ def train_run(run: Run, log=print) -> dict | None:
     ):
       break
   best = policies.load(run.directory / train.BEST_POLICY)
-  episodes = 1 if run.fixed else PLAN['final_episodes_random']
+  _read(run, best, VALIDATION)
+  _read(run, best, TEST)  # Last: nothing is decided after it.
+  return record(run)
+
+
+def interval(successes: float, episodes: int) -> tuple[float, float]:
+  """The 95% Wilson interval of a success rate read on `episodes`
+  independent episodes."""
+  z = 1.959963984540054
+  n = max(episodes, 1)
+  centre = (successes + z * z / (2 * n)) / (1 + z * z / n)
+  half = (z / (1 + z * z / n)) * np.sqrt(
+    successes * (1 - successes) / n + z * z / (4 * n * n)
+  )
+  return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def _read(run: Run, policy, which: str) -> None:
+  """Evaluates `policy` on the run's validation or test episodes into
+  VALIDATION or TEST. A Fixed task has one episode, the same whatever its
+  seed (the simulation and the policy's mean action are deterministic):
+  its reading is exact."""
+  from robel_dm import evaluate  # noqa: PLC0415
+
+  offset, episodes = {
+    VALIDATION: (VALIDATION_SEED_OFFSET, PLAN['validation_episodes_random']),
+    TEST: (TEST_SEED_OFFSET, PLAN['test_episodes_random']),
+  }[which]
+  episodes = 1 if run.fixed else episodes
+  seed = offset + run.seed * 10_000
   results = evaluate.evaluate(
     run.domain,
     run.task,
     episodes,
-    policy=best,
-    seed=FINAL_SEED_OFFSET + run.seed * 1000,
+    policy=policy,
+    seed=seed,
     task_kwargs=run.task_kwargs,
   )
-  final = {
+  success = results['success_rate']
+  reading = {
     'episodes': episodes,
+    'seed': seed,
     'deterministic': run.fixed,
-    'success': results['success_rate'],
+    'success': success,
+    'interval': [success, success]
+    if run.fixed
+    else list(interval(success, episodes)),
     'score': results['mean_score'],
     'return': results['mean_return'],
     'violations': results['safety'],
   }
-  (run.directory / FINAL).write_text(json.dumps(final, indent=1))
-  return record(run)
+  (run.directory / which).write_text(json.dumps(reading, indent=1))
+
+
+def _to_80(log: list[dict]) -> dict | None:
+  """The first training evaluation at or above the solved rate."""
+  return next(
+    (row for row in log if row['success_rate'] >= PLAN['solved']), None
+  )
 
 
 def record(run: Run) -> dict:
   """The run's line of docs/baselines.json."""
   log = evaluations(run)
-  final = json.loads((run.directory / FINAL).read_text())
-  last = log[-1]
-  solved_at = next(
-    (row['env_steps'] for row in log if row['success_rate'] >= PLAN['solved']),
-    None,
-  )
+  test = json.loads((run.directory / TEST).read_text())
+  validation = json.loads((run.directory / VALIDATION).read_text())
+  last, reached = log[-1], _to_80(log)
   config = json.loads((run.directory / 'config.json').read_text())
   confirmations = run.directory / CONFIRMATIONS
   return {
@@ -423,14 +419,26 @@ def record(run: Run) -> dict:
     'task_kwargs': run.task_kwargs,
     'algo': run.algo,
     'seed': run.seed,
+    'protocol': PROTOCOL,
     'env_steps': last['env_steps'],
     'budget': config['steps'],
-    'success': final['success'],
-    'score': final['score'],
-    'final_episodes': final['episodes'],
-    'deterministic': final['deterministic'],
-    'steps_to_80': solved_at,
-    'violations': final['violations'],
+    'success': test['success'],
+    'success_interval': test['interval'],
+    'score': test['score'],
+    'final_episodes': test['episodes'],
+    'test_seed': test['seed'],
+    'deterministic': test['deterministic'],
+    'validation': {
+      key: validation[key] for key in ('success', 'score', 'episodes', 'seed')
+    },
+    'steps_to_80': None if reached is None else reached['env_steps'],
+    'minutes_to_80': None
+    if reached is None
+    else {
+      'wall': reached['wall_time'] / 60,
+      'cpu': reached.get('cpu_time', 0.0) / 60,
+    },
+    'violations': test['violations'],
     'wall_minutes': last['wall_time'] / 60,
     'cpu_minutes': last['cpu_time'] / 60,
     'commit': (run.directory / COMMIT).read_text().strip()
@@ -439,7 +447,7 @@ def record(run: Run) -> dict:
     'curve': [
       [row.get('epoch', row['env_steps']), row['success_rate']] for row in log
     ],
-    # Early stops checked on fresh episodes (Random tasks), in order.
+    # Early stops checked on fresh validation episodes (Random tasks).
     'confirmations': [
       json.loads(line) for line in confirmations.read_text().splitlines()
     ]
@@ -474,33 +482,72 @@ def _merge(records: list[dict]) -> None:
   existing = json.loads(RESULTS.read_text()) if RESULTS.is_file() else []
   merged = {_key(row): row for row in existing}
   merged.update({_key(row): row for row in records})
-  rows = sorted(merged.values(), key=_key)
+  _write(list(merged.values()))
+
+
+def _write(rows: list[dict]) -> None:
+  rows = sorted(rows, key=_key)
   temporary = RESULTS.with_suffix('.partial')
   temporary.write_text(json.dumps(rows, indent=1) + '\n')
   temporary.replace(RESULTS)
 
 
+def forget(run: Run) -> None:
+  """Removes the run's folder and record, so that it is made again."""
+  import shutil  # noqa: PLC0415
+
+  shutil.rmtree(run.directory, ignore_errors=True)
+  with open(RESULTS.with_suffix('.lock'), 'w') as lock:
+    fcntl.flock(lock, fcntl.LOCK_EX)
+    if RESULTS.is_file():
+      mine = _key(dataclasses.asdict(run) | {'task_kwargs': run.task_kwargs})
+      rows = [r for r in json.loads(RESULTS.read_text()) if _key(r) != mine]
+      _write(rows)
+
+
+def _say_recorded(run: Run, log) -> None:
+  row = _recorded_row(run)
+  log(
+    f'{run.name}: recorded (success {row["success"]:.2f}, protocol '
+    f'{row.get("protocol", 1)}); --force makes it again'
+  )
+
+
 def train_queue(
-  queue: int, queues: int, pattern: str | None, hours: float | None
+  queue: int,
+  queues: int,
+  pattern: str | None,
+  hours: float | None,
+  force: bool = False,
 ) -> None:
   """Runs this queue's share of the table, round robin, resuming; runs
-  that wait for demonstrations are tried again after the others."""
+  that wait for demonstrations are tried again after the others. Runs
+  chosen by name (`pattern`) that are done are named, or with `force`
+  made again from the start."""
   deadline = time.monotonic() + hours * 3600 if hours else None
+  log = lambda line: print(line, flush=True)  # noqa: E731
   mine = [r for i, r in enumerate(select(pattern)) if i % queues == queue]
   waiting = []
   for run in mine:
     if deadline and time.monotonic() > deadline:
       print('time budget used up; the rest resumes on the next call')
       return
-    if done(run) and not finished(run):
+    if force:
+      forget(run)
+    elif finished(run) and not recorded(run):  # Its merge was cut short.
+      merge_results([record(run)])
       continue
-    result = train_run(run, log=lambda line: print(line, flush=True))
+    elif done(run):
+      if pattern:
+        _say_recorded(run, log)
+      continue
+    result = train_run(run, log=log)
     if result is None:
       waiting.append(run)
     else:
       merge_results([result])
   for run in waiting:
-    result = train_run(run, log=lambda line: print(line, flush=True))
+    result = train_run(run, log=log)
     if result is not None:
       merge_results([result])
 
@@ -518,7 +565,9 @@ def train_ray(address: str, pattern: str | None) -> list[dict]:
   instance on this machine for the call."""
   from robel_dm import parallel  # noqa: PLC0415
 
-  chosen = [run for run in select(pattern) if finished(run) or not done(run)]
+  chosen = [
+    run for run in select(pattern) if not done(run) or not recorded(run)
+  ]
   with parallel.ray_session(address) as ray:
     remote = ray.remote(num_cpus=1)(_remote_train_run)
     pending = {remote.remote(run, PLAN, RUNS_DIR): run for run in chosen}

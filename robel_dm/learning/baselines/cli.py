@@ -21,6 +21,11 @@ def main(argv: list[str] | None = None) -> int:
   train_parser.add_argument('--only', default=None, help='fnmatch pattern')
   train_parser.add_argument('--hours', type=float, default=None)
   train_parser.add_argument('--ray_address', default=None)
+  train_parser.add_argument(
+    '--force',
+    action='store_true',
+    help='make the chosen runs again from the start (needs --only)',
+  )
   commands.add_parser('list', help='the runs and whether each is done')
   commands.add_parser('report', help='docs/baselines.md, figures, policies')
   args = parser.parse_args(argv)
@@ -41,7 +46,11 @@ def main(argv: list[str] | None = None) -> int:
     else:
       if not 0 <= args.queue < args.queues:
         raise ValueError('--queue must be in [0, --queues)')
-      baselines.train_queue(args.queue, args.queues, args.only, args.hours)
+      if args.force and not args.only:
+        raise ValueError('--force makes runs again: choose them with --only')
+      baselines.train_queue(
+        args.queue, args.queues, args.only, args.hours, force=args.force
+      )
   except ValueError as error:
     print(f'error: {error}', file=sys.stderr)
     return 2

@@ -14,6 +14,7 @@ import shutil
 
 from robel_dm import task_args
 from robel_dm.learning import baselines
+from robel_dm.learning.baselines import selection
 
 DIRECTORY = baselines.ROOT / 'docs' / 'baselines' / 'demonstrators'
 
@@ -30,7 +31,7 @@ def _source(run: baselines.Run) -> str | None:
   pinned = demonstrator(run.domain, run.task)
   if pinned.is_file():
     return str(pinned)
-  best = baselines.best_policy(run.domain, run.task)
+  best = selection.best_policy(run.domain, run.task)
   return None if best is None else str(best)
 
 
@@ -63,7 +64,7 @@ def record(run: baselines.Run, log=print) -> str | None:
     run.task,
     demo_episodes,
     policy=source if source == 'reference' else policies.load(source),
-    seed=baselines.FINAL_SEED_OFFSET * 2,
+    seed=baselines.DEMO_SEED_OFFSET,
     record=str(directory),
   )
   made_by.write_text(identity)

@@ -11,6 +11,7 @@ import statistics
 
 from robel_dm import suite
 from robel_dm.learning import baselines, curves
+from robel_dm.learning.baselines import selection
 
 START, END = '<!-- table -->', '<!-- /table -->'
 SUMMARY_START, SUMMARY_END = '<!-- summary -->', '<!-- /summary -->'
@@ -236,20 +237,31 @@ def figures(rows: list[dict]) -> list[str]:
 
 
 def ship(rows: list[dict]) -> list[str]:
-  """Copies each solved task's best policy at hand (`baselines.best_policy`)
-  into policies/, which `--policy=baseline` runs; names what is shipped."""
+  """Copies the policy of each task's run that `selection.choose` ships,
+  where it is at hand, into policies/ (which `--policy=baseline` runs);
+  names what is shipped, and the rule's run where that is not at hand."""
   shipped = []
-  for domain, task in sorted(
-    {(r['domain'], r['task']) for r in rows if not r['task_kwargs']}
+  for (domain, task, valve), by_agent in sorted(
+    selection.task_groups(rows).items()
   ):
-    source = baselines.best_policy(domain, task, rows)
-    if source is None:
+    if valve != 'valve3':
       continue
+    source = selection.best_policy(domain, task, rows)
     target = baselines.POLICIES / f'{domain}_{task}.npz'
-    if source != target:
+    if source is not None and source != target:
       shutil.copy(source, target)
     made = baselines.shipped_metadata(domain, task)
-    shipped.append(f'{domain}/{task} ({made["algo"]}, seed {made["seed"]})')
+    if made is None:
+      continue
+    line = f'{domain}/{task} ({made["algo"]}, seed {made["seed"]}'
+    rule = selection.choose(by_agent).shipped
+    if source is None and rule is not None:
+      name = baselines.Run(domain, task, rule['algo'], rule['seed']).name
+      line += (
+        f'; the rule ships {rule["algo"]} seed {rule["seed"]}, whose run is '
+        f'not here: baselines train --only={name} --force'
+      )
+    shipped.append(line + ')')
   return shipped
 
 

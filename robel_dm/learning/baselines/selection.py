@@ -1,0 +1,140 @@
+"""Which agent the table recommends for a task and which run it ships.
+
+Both are decisions, so both are made on validation readings (a record's
+`validation`), never on the test success the table reports. A record of
+protocol 1 has no validation reading: its reported success stands in, and
+the report marks such rows.
+"""
+
+import collections
+from collections.abc import Iterable
+import dataclasses
+import json
+import math
+import pathlib
+import statistics
+
+from robel_dm.learning import baselines
+
+# A median over seeds where an unsolved seed counts as "more than the
+# budget": infinity sorts after every number.
+UNSOLVED = math.inf
+
+
+def validation_success(row: dict) -> float:
+  """The success a decision may look at."""
+  return row['validation']['success'] if 'validation' in row else row['success']
+
+
+def validation_score(row: dict) -> float:
+  return row['validation']['score'] if 'validation' in row else row['score']
+
+
+def steps_to_80(row: dict) -> float:
+  """The env steps to the first training evaluation at 80% of a solved
+  row; UNSOLVED for a row whose reported success is below the bar."""
+  if not baselines.solved(row) or row['steps_to_80'] is None:
+    return UNSOLVED
+  return row['steps_to_80']
+
+
+def median_steps_to_80(group: Iterable[dict]) -> float:
+  """The median over every seed, unsolved seeds counted as UNSOLVED (so
+  the median is UNSOLVED unless most seeds are solved)."""
+  return statistics.median_low(sorted(steps_to_80(row) for row in group))
+
+
+@dataclasses.dataclass(frozen=True)
+class Choice:
+  """The recommended agent of a task, the run shipped and why."""
+
+  algo: str
+  rows: tuple[dict, ...]
+  shipped: dict | None
+  why: str
+
+
+def task_groups(rows: Iterable[dict]) -> dict[tuple, dict[str, list[dict]]]:
+  """Records by (domain, task, valve) and then by agent, seeds in order."""
+  groups = collections.defaultdict(lambda: collections.defaultdict(list))
+  for row in sorted(rows, key=lambda row: row['seed']):
+    valve = row['task_kwargs'].get('valve', 'valve3')
+    groups[(row['domain'], row['task'], valve)][row['algo']].append(row)
+  return groups
+
+
+def _merit(group: list[dict], seeds: int) -> tuple:
+  """Higher is better: every seed of the plan run, seeds solved on
+  validation, mean validation success, fewer env steps to 80% (median
+  over seeds), less CPU time."""
+  solved = sum(
+    validation_success(row) >= baselines.PLAN['solved'] for row in group
+  )
+  mean = statistics.fmean(validation_success(row) for row in group)
+  cpu = statistics.median(row['cpu_minutes'] for row in group)
+  return (len(group) >= seeds, solved, mean, -median_steps_to_80(group), -cpu)
+
+
+def choose(by_agent: dict[str, list[dict]]) -> Choice:
+  """The task's recommended agent (best `_merit`) and the run shipped: its
+  seed with the highest validation success, then validation score, if
+  that is solved on validation."""
+  seeds = len(baselines.PLAN['seeds'])
+  ranked = sorted(
+    by_agent, key=lambda algo: _merit(by_agent[algo], seeds), reverse=True
+  )
+  algo, group = ranked[0], by_agent[ranked[0]]
+  best = max(
+    group, key=lambda row: (validation_success(row), validation_score(row))
+  )
+  shipped = (
+    best if validation_success(best) >= baselines.PLAN['solved'] else None
+  )
+  return Choice(algo, tuple(group), shipped, _why(algo, by_agent, ranked))
+
+
+def _why(algo: str, by_agent: dict[str, list[dict]], ranked: list[str]) -> str:
+  group = by_agent[algo]
+  bar = baselines.PLAN['solved']
+  solved = sum(validation_success(row) >= bar for row in group)
+  text = f'solves {solved} of {len(group)} seeds on validation'
+  if len(ranked) < 2:
+    return text + ' (the only agent run)'
+  runner_up = by_agent[ranked[1]]
+  other = sum(validation_success(row) >= bar for row in runner_up)
+  if other < solved:
+    return f'{text}; next best `{ranked[1]}` {other} of {len(runner_up)}'
+  mine, theirs = median_steps_to_80(group), median_steps_to_80(runner_up)
+  if mine < theirs:
+    return f'{text}, in the fewest env steps to 80% (median over seeds)'
+  return f'{text}, with the highest mean validation success'
+
+
+def best_policy(
+  domain: str, task: str, rows: list[dict] | None = None
+) -> pathlib.Path | None:
+  """The policy file of the run `choose` ships for the task (valve3), if
+  it is at hand: the run's best policy, or the shipped one if it is that
+  run's. Run folders are not committed, so in a fresh clone the shipped
+  policy stands until the chosen run is made; without records, too.
+  `rows`: the records, if already read."""
+  if rows is None:
+    results = baselines.RESULTS
+    rows = json.loads(results.read_text()) if results.is_file() else []
+  shipped = baselines.POLICIES / f'{domain}_{task}.npz'
+  metadata = baselines.shipped_metadata(domain, task)
+  by_agent = task_groups(rows).get((domain, task, 'valve3'))
+  if not by_agent:
+    return shipped if metadata else None
+  row = choose(by_agent).shipped
+  if row is None:
+    return None
+  source = baselines.Run(domain, task, row['algo'], row['seed']).directory
+  if (source / 'policy_best.npz').is_file():
+    return source / 'policy_best.npz'
+  if metadata and (metadata['algo'], metadata['seed']) == (
+    row['algo'],
+    row['seed'],
+  ):
+    return shipped
+  return None
