@@ -42,6 +42,11 @@ def _define_flags() -> None:
     'safety_penalty', 0.0, 'Training reward minus this per safety violation.'
   )
   flags.DEFINE_bool('resume', False, 'Continue from the checkpoint.')
+  flags.DEFINE_bool(
+    'overwrite',
+    False,
+    'Start over in an --output_dir that holds a run (removes its files).',
+  )
   flags.DEFINE_list('hidden', [], "Hidden layer sizes (the agent's if empty).")
   flags.DEFINE_list(
     'demos', [], 'Recordings of demonstrations (bc and sac_demos).'
@@ -152,7 +157,12 @@ def main(argv):
         **{name: FLAGS[name].value for name in _ROBOT_RUN_FLAGS},
       )
       robot.train_on_robot(
-        config, options, FLAGS.output_dir, resume=FLAGS.resume, log=log
+        config,
+        options,
+        FLAGS.output_dir,
+        resume=FLAGS.resume,
+        overwrite=FLAGS.overwrite,
+        log=log,
       )
     else:
       given = [name for name in _ROBOT_RUN_FLAGS if FLAGS[name].present]
@@ -160,7 +170,13 @@ def main(argv):
         raise ValueError(
           f'--{given[0]} needs --device_path (it is about a robot)'
         )
-      learning.train(config, FLAGS.output_dir, resume=FLAGS.resume, log=log)
+      learning.train(
+        config,
+        FLAGS.output_dir,
+        resume=FLAGS.resume,
+        overwrite=FLAGS.overwrite,
+        log=log,
+      )
   except ImportError as error:
     print(
       f'error: training needs the learn extra '

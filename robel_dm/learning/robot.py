@@ -347,9 +347,11 @@ def train_on_robot(
   output_dir: str | pathlib.Path,
   *,
   resume: bool = False,
+  overwrite: bool = False,
   log: Callable[[str], None] = print,
 ) -> list[dict[str, Any]]:
   """Trains `config` on a robot in real time (see the module docstring).
+  `overwrite` starts over in an `output_dir` that holds a run.
 
   Returns:
     The evaluation log.
@@ -372,15 +374,17 @@ def train_on_robot(
   metadata = train_lib.metadata_of(config)
   keys = tuple(metadata['observation_keys'])
   output = pathlib.Path(output_dir)
+  robot_files = (RECORDING, PROGRESS_LOG, ROBOT)
+  train_lib.check_output_dir(
+    output, resume, overwrite, train_lib.RUN_MARKERS + robot_files
+  )
   if resume:
     train_lib.check_resume(output, config, need_checkpoint=False)
     _check_robot_resume(output, options)
-  elif (output / RECORDING).exists():
-    raise ValueError(
-      f'{output} already holds a run (pass --resume to continue it)'
-    )
   data = train_lib.load_data(config, keys)
   recorded = _recorded(output, config, keys) if resume else None
+  if overwrite:  # After every check: a refused run removes nothing.
+    train_lib.clear_output_dir(output, train_lib.RUN_FILES + robot_files)
   output.mkdir(parents=True, exist_ok=True)
   (output / train_lib.CONFIG).write_text(json.dumps(config.to_json(), indent=1))
   (output / ROBOT).write_text(json.dumps(options.to_json(), indent=1))

@@ -17,7 +17,11 @@ Writes into --output_dir:
     return, safety violations per episode), with ROBEL's reward whatever
     --safety_penalty is; evaluation episodes use seeds no training episode
     uses;
-  * `learning_curve.png`.
+  * `learning_curve.png`;
+  * `tensorboard/`: TensorBoard event files (`robel_dm.learning.telemetry`).
+
+A directory that already holds a run is refused unless --resume continues
+it or --overwrite starts it over (removing the run's files first).
 
 Needs the `learn` extra.
 """
@@ -27,6 +31,7 @@ import dataclasses
 import json
 import pathlib
 import pickle
+import shutil
 import time
 from typing import Any
 
@@ -45,6 +50,21 @@ EVAL_LOG = 'eval.jsonl'
 CURVE = 'learning_curve.png'
 CONFIG = 'config.json'
 METADATA = 'metadata.json'
+# Any of these shows that a directory holds a run.
+RUN_MARKERS = (CONFIG, EVAL_LOG, CHECKPOINT, POLICY)
+# What a run writes; --overwrite removes these (and the TensorBoard events).
+RUN_FILES = (
+  CHECKPOINT,
+  REPLAY_BUFFER,
+  ENV_STATE,
+  POLICY,
+  BEST_POLICY,
+  EVAL_LOG,
+  CURVE,
+  CONFIG,
+  METADATA,
+)
+EVENT_FILES = 'events.out.tfevents.*'
 # Evaluation episodes are seeded from here on, training ones below it.
 EVAL_SEED_OFFSET = 1_000_000
 # What --resume may change: the budget and how often it is evaluated.
@@ -380,6 +400,49 @@ def check_resume(
     )
 
 
+def check_output_dir(
+  output: str | pathlib.Path,
+  resume: bool,
+  overwrite: bool,
+  markers: Sequence[str] = RUN_MARKERS,
+) -> None:
+  """Raises ValueError if `resume` and `overwrite` are both asked, or if
+  neither is and `output` already holds a run (one of `markers` exists).
+
+  An absent or empty directory, or one holding only other files, is fine.
+  """
+  if resume and overwrite:
+    raise ValueError(
+      '--resume continues a run and --overwrite starts it over: pass one '
+      'of them'
+    )
+  if resume or overwrite:
+    return
+  output = pathlib.Path(output)
+  held = [name for name in markers if (output / name).exists()]
+  if held:
+    raise ValueError(
+      f'{output} already holds a run ({held[0]}): pass --resume to continue '
+      'it or --overwrite to start over'
+    )
+
+
+def clear_output_dir(
+  output: str | pathlib.Path, names: Sequence[str] = RUN_FILES
+) -> None:
+  """Removes a previous run's files from `output`: `names` (files or
+  folders) and the TensorBoard event files; other files stay."""
+  output = pathlib.Path(output)
+  for name in names:
+    path = output / name
+    if path.is_dir() and not path.is_symlink():
+      shutil.rmtree(path)
+    elif path.exists() or path.is_symlink():
+      path.unlink()
+  for path in (output / telemetry.TENSORBOARD_DIR).glob(EVENT_FILES):
+    path.unlink()
+
+
 def _normalized(config: RunConfig, name: str):
   value = getattr(config, name)
   if name == 'hidden':
@@ -416,25 +479,38 @@ def train(
   output_dir: str | pathlib.Path,
   *,
   resume: bool = False,
+  overwrite: bool = False,
   log: Callable[[str], None] = print,
 ) -> list[dict[str, Any]]:
   """Trains, evaluating every `config.eval_every` env steps.
+
+  Args:
+    config: the run's settings.
+    output_dir: where the run's files go.
+    resume: continue the run `output_dir` holds.
+    overwrite: start over in an `output_dir` that holds a run, removing
+      its files (`RUN_FILES`, TensorBoard events) first.
+    log: where progress lines go.
 
   Returns:
     The evaluation log (one dict per evaluation).
 
   Raises:
-    ValueError: for bad settings, a --resume without a checkpoint or with
-      other settings, or unusable demonstrations; all before anything is
-      written.
+    ValueError: for bad settings, an `output_dir` holding a run without
+      `resume` or `overwrite` (or both asked), a --resume without a
+      checkpoint or with other settings, or unusable demonstrations; all
+      before anything is written.
   """
   config.check()
+  output = pathlib.Path(output_dir)
+  check_output_dir(output, resume, overwrite)
   agents.check_installed(config.agent)
   metadata = metadata_of(config)  # Also checks the task's name.
-  output = pathlib.Path(output_dir)
   if resume:
     check_resume(output, config)
   data = load_data(config, tuple(metadata['observation_keys']))
+  if overwrite:
+    clear_output_dir(output)
   output.mkdir(parents=True, exist_ok=True)
   run = Run(output, config, log)
   if resume:
