@@ -111,6 +111,7 @@ def sandbox(tmp_path, monkeypatch):
   monkeypatch.setattr(baselines, 'PLAN', plan)
   for name, path in (('RUNS_DIR', 'runs'), ('RESULTS', 'docs/b.json'),
                      ('DOC', 'docs/table.txt'), ('FIGURES', 'docs/figures'),
+                     ('README', 'README.md'),
                      ('POLICIES', 'policies')):  # fmt: skip
     monkeypatch.setattr(baselines, name, tmp_path / path)
   monkeypatch.setattr(demonstrations, 'DIRECTORY', tmp_path / 'demonstrators')
@@ -370,7 +371,12 @@ def test_the_report_is_derived_from_the_records(sandbox):
   report.write()
   text = baselines.DOC.read_text()
   assert '\nold\n' not in text
-  assert '| dclaw/pose_random | sac | 0 | 16 |' in text
+  assert '| dclaw/pose_random | sac | 0 | 16 | 16 |' in text
+  # Per robot, the recommended agent of each task.
+  results = text.split('<!-- results dclaw -->')[1].split('<!-- /')[0]
+  assert '| pose_random | `sac`: solves' in results
+  manifest = json.loads((baselines.FIGURES / 'figures.json').read_text())
+  assert manifest['records_sha256'] == report.records_digest()
   assert '1 (deterministic)' in text
   assert (baselines.FIGURES / 'dclaw_pose_random.png').is_file()
   # The status counts and the solved-by table come from the records too.
@@ -518,3 +524,18 @@ def test_the_table_fans_out_over_ray(sandbox):
   assert sorted(r['task'] for r in records) == ['pose_fixed', 'pose_random']
   rows = json.loads(baselines.RESULTS.read_text())
   assert len(rows) == 2
+
+
+def test_the_figures_and_tables_are_made_from_the_current_records():
+  # `report` writes the figures' manifest with the records it read: a
+  # record merged without a report leaves the docs behind.
+  manifest = json.loads((baselines.FIGURES / 'figures.json').read_text())
+  assert manifest['records_sha256'] == report.records_digest()
+  rows = json.loads(baselines.RESULTS.read_text())
+  assert report.readme_table(rows) in baselines.README.read_text()
+  text = baselines.DOC.read_text()
+  assert report.results_table(rows, 'dclaw') in text
+  assert report.run_table(rows) in text
+  # Results first: the robots' tables open the page, every run closes it.
+  assert text.index('## Results') < text.index('<!-- results dclaw -->')
+  assert text.index('## How the table is made') < text.index('## Per run')

@@ -37,6 +37,7 @@ PLAN = json.loads((pathlib.Path(__file__).with_name('plan.json')).read_text())
 RUNS_DIR = ROOT / 'runs' / 'baselines'
 RESULTS = ROOT / 'docs' / 'baselines.json'
 DOC = ROOT / 'docs/baselines.md'
+README = ROOT / 'README.md'
 FIGURES = ROOT / 'docs' / 'baselines'
 POLICIES = ROOT / 'policies'
 COMMIT = 'commit.txt'

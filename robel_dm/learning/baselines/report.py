@@ -5,6 +5,7 @@ table, the figures and the data never disagree.
 """
 
 import collections
+import hashlib
 import json
 import shutil
 import statistics
@@ -25,32 +26,123 @@ def _name(row: dict) -> str:
 
 
 def _violations(row: dict) -> str:
-  return ' / '.join(f'{v:.1f}' for v in row['violations'].values())
+  return ' / '.join(f'{v:.0f}' for v in row['violations'].values())
+
+
+def _steps(value: float) -> str:
+  return '> budget' if value == selection.UNSOLVED else f'{value:,.0f}'
+
+
+def _marks(row: dict) -> str:
+  """† a record of protocol 1 (being made again); ~ a 95% interval that
+  straddles the solved rate."""
+  marks = '' if row.get('protocol', 1) >= baselines.PROTOCOL else '†'
+  low, high = row.get('success_interval', (row['success'],) * 2)
+  if low < baselines.PLAN['solved'] <= high and low != high:
+    marks += '~'
+  return marks
+
+
+def _success(row: dict) -> str:
+  low, high = row.get('success_interval', (row['success'],) * 2)
+  if low == high:
+    return f'{row["success"]:.2f}{_marks(row)}'
+  return f'{row["success"]:.2f} ({low:.2f}-{high:.2f}){_marks(row)}'
 
 
 def run_table(rows: list[dict]) -> str:
   """One line per run."""
   lines = [
-    '| Task | Agent | Seed | Env steps | Success | Episodes | Mean score '
-    '| Steps to 80% | Violations / episode (position / velocity / current) '
+    '| Task | Agent | Seed | Budget | Env steps | Success (95% interval) '
+    '| Test episodes | Validation success | Mean score | Steps to 80% '
+    '| Violations / episode (position / velocity / current) '
     '| Wall min | CPU min |',
-    '|---|---|---|---|---|---|---|---|---|---|---|',
+    '|---|---|---|---|---|---|---|---|---|---|---|---|---|',
   ]
   for row in rows:
-    reached = row['steps_to_80']
     episodes = (
       '1 (deterministic)' if row['deterministic'] else row['final_episodes']
     )
+    validation = (
+      f'{row["validation"]["success"]:.2f}' if 'validation' in row else '-'
+    )
     lines.append(
       f'| {_name(row)} | {row["algo"]} | {row["seed"]} '
-      f'| {row["env_steps"]:,} | {row["success"]:.2f} '
-      f'| {episodes} '
-      f'| {row["score"]:.3f} '
-      f'| {"never" if reached is None else f"{reached:,}"} '
-      f'| {_violations(row)} | {row["wall_minutes"]:.0f} '
-      f'| {row["cpu_minutes"]:.0f} |'
+      f'| {row["budget"]:,} | {row["env_steps"]:,} | {_success(row)} '
+      f'| {episodes} | {validation} | {row["score"]:.3f} '
+      f'| {_steps(selection.steps_to_80(row))} '
+      f'| {_violations(row)} | {row["wall_minutes"]:.1f} '
+      f'| {row["cpu_minutes"]:.1f} |'
     )
   return '\n'.join(lines)
+
+
+def _spread(group: list[dict]) -> str:
+  """Mean success over seeds, and the lowest and highest seed."""
+  values = [row['success'] for row in group]
+  mean = statistics.fmean(values)
+  marks = ''.join(sorted({m for row in group for m in _marks(row)}))
+  if len(values) == 1:
+    return f'{mean:.2f}{marks}'
+  return f'{mean:.2f} ({min(values):.2f}-{max(values):.2f}){marks}'
+
+
+def _to_80(group: list[dict], unit: str) -> str:
+  """The median over seeds of the wall or CPU minutes to 80%; unsolved
+  seeds count as more than the run."""
+  values = sorted(
+    row['minutes_to_80'][unit]
+    if baselines.solved(row) and row.get('minutes_to_80')
+    else selection.UNSOLVED
+    for row in group
+  )
+  if any(
+    baselines.solved(row) and not row.get('minutes_to_80') for row in group
+  ):
+    return '-'  # Recorded before the records kept the time to 80%.
+  median = statistics.median_low(values)
+  return '> budget' if median == selection.UNSOLVED else f'{median:.1f}'
+
+
+def results_table(rows: list[dict], domain: str) -> str:
+  """One line per task of a robot: the recommended agent and what it
+  gives (`selection.choose`), and the policy shipped."""
+  lines = [
+    '| Task | Recommended agent (why) | Success: mean over seeds (lowest-'
+    'highest) | Seeds solved | Env steps to 80% (median) | Wall min to 80% '
+    '(median) | Violations / episode (pos / vel / cur) | Shipped policy |',
+    '|---|---|---|---|---|---|---|---|',
+  ]
+  for (dom, task, valve), by_agent in sorted(
+    selection.task_groups(rows).items()
+  ):
+    if dom != domain:
+      continue
+    choice = selection.choose(by_agent)
+    group = list(choice.rows)
+    name = task + ('' if valve == 'valve3' else f' ({valve})')
+    solved = sum(map(baselines.solved, group))
+    violations = {
+      kind: statistics.fmean(row['violations'][kind] for row in group)
+      for kind in group[0]['violations']
+    }
+    shipped = _shipped_cell(dom, task, valve)
+    lines.append(
+      f'| {name} | `{choice.algo}`: {choice.why} | {_spread(group)} '
+      f'| {solved} of {len(group)} '
+      f'| {_steps(selection.median_steps_to_80(group))} '
+      f'| {_to_80(group, "wall")} '
+      f'| {" / ".join(f"{v:.0f}" for v in violations.values())} '
+      f'| {shipped} |'
+    )
+  return '\n'.join(lines)
+
+
+def _shipped_cell(domain: str, task: str, valve: str) -> str:
+  made = baselines.shipped_metadata(domain, task) if valve == 'valve3' else None
+  if made is None:
+    return '-'
+  return f'`{made["algo"]}` seed {made["seed"]}'
 
 
 def _by_task_and_agent(rows: list[dict]) -> dict[tuple[str, str], list]:
@@ -62,30 +154,30 @@ def _by_task_and_agent(rows: list[dict]) -> dict[tuple[str, str], list]:
 
 
 def summary_table(rows: list[dict]) -> str:
-  """One line per task and agent: seeds solved, success, compute."""
+  """One line per task and agent: seeds solved, success, cost."""
   groups = _by_task_and_agent(rows)
   lines = [
-    '| Task | Agent | Seeds solved (success >= 0.8) | Success per seed '
-    '| Median steps to 80% | CPU min in all |',
-    '|---|---|---|---|---|---|',
+    '| Task | Agent | Budget (env steps; bc: epochs) | Seeds solved '
+    '| Success: mean (lowest-highest) | Env steps to 80% (median) '
+    '| Wall min per run (median) | CPU min per run (median) |',
+    '|---|---|---|---|---|---|---|---|',
   ]
   for (name, algo), group in sorted(groups.items()):
     solved = sum(map(baselines.solved, group))
-    reached = sorted(
-      row['steps_to_80'] for row in group if row['steps_to_80'] is not None
-    )
-    median = f'{reached[len(reached) // 2]:,}' if reached else 'never'
-    successes = ', '.join(f'{row["success"]:.2f}' for row in group)
+    budgets = sorted({row['budget'] for row in group})
     lines.append(
-      f'| {name} | {algo} | {solved} of {len(group)} '
-      f'| {successes} '
-      f'| {median} | {sum(row["cpu_minutes"] for row in group):.0f} |'
+      f'| {name} | {algo} | {", ".join(f"{b:,}" for b in budgets)} '
+      f'| {solved} of {len(group)} | {_spread(group)} '
+      f'| {_steps(selection.median_steps_to_80(group))} '
+      f'| {statistics.median(r["wall_minutes"] for r in group):.1f} '
+      f'| {statistics.median(r["cpu_minutes"] for r in group):.1f} |'
     )
   return '\n'.join(lines)
 
 
 def progress(rows: list[dict]) -> str:
-  """How much of the plan the records hold, and what they cost."""
+  """How much of the plan the records hold, under which protocol, and
+  what they cost."""
   table = baselines.runs()
   default = [r for r in table if r.algo == baselines.PLAN['default_agent']]
   settled = {r.name for r in table if baselines.settled(r)}
@@ -97,16 +189,17 @@ def progress(rows: list[dict]) -> str:
     for r in rows
   }  # fmt: skip
   outside = len(recorded - {r.name for r in table})
+  old = sum(row.get('protocol', 1) < baselines.PROTOCOL for row in rows)
   cpu = sum(row['cpu_minutes'] for row in rows)
   return (
     f'The plan has {len(table)} runs: {len(default)} with the default agent '
     f'(`{baselines.PLAN["default_agent"]}`) and {len(table) - len(default)} '
-    f'with the other kinds of agent. Settled (recorded, and solved or '
-    f"trained to the plan's budget): {len(settled)} of them, "
+    f'with the other kinds of agent. Recorded under protocol '
+    f'{baselines.PROTOCOL}: {len(settled)} of them, '
     f'{len(settled & {r.name for r in default})} with the default agent. '
     f'`baselines.json` holds {len(rows)} records ({outside} of them runs '
-    f'outside the plan, kept for comparison), {cpu:,.0f} CPU minutes of '
-    f'training in all.'
+    f'outside the plan, kept for comparison; {old} of protocol 1, marked '
+    f'†), {cpu:,.0f} CPU minutes of training in all.'
   )
 
 
@@ -265,14 +358,62 @@ def ship(rows: list[dict]) -> list[str]:
   return shipped
 
 
+def readme_table(rows: list[dict]) -> str:
+  """The README's summary: per Fixed and Random task, the recommended
+  agent, its success and cost to 80%, and the policy shipped."""
+  lines = [
+    '| Task | Agent | Success (mean over seeds) | Seeds solved '
+    '| Env steps to 80% (median) | Shipped |',
+    '|---|---|---|---|---|---|',
+  ]
+  for (domain, task, valve), by_agent in sorted(
+    selection.task_groups(rows).items()
+  ):
+    if valve != 'valve3':
+      continue
+    choice = selection.choose(by_agent)
+    group = list(choice.rows)
+    lines.append(
+      f'| {domain}/{task} | `{choice.algo}` | {_spread(group)} '
+      f'| {sum(map(baselines.solved, group))} of {len(group)} '
+      f'| {_steps(selection.median_steps_to_80(group))} '
+      f'| {_shipped_cell(domain, task, valve)} |'
+    )
+  return '\n'.join(lines)
+
+
+def records_digest() -> str:
+  """The SHA-256 of docs/baselines.json, which the figures record."""
+  return hashlib.sha256(baselines.RESULTS.read_bytes()).hexdigest()
+
+
 def write() -> None:
+  """Ships the chosen policies, then writes every table and figure of
+  docs/baselines.md and the README from docs/baselines.json."""
   rows = json.loads(baselines.RESULTS.read_text())
+  print('shipped:', ', '.join(ship(rows)) or 'none')
   text = baselines.DOC.read_text() if baselines.DOC.is_file() else ''
+  for domain in ('dclaw', 'dkitty'):
+    text = _replace(
+      text,
+      f'<!-- results {domain} -->',
+      f'<!-- /results {domain} -->',
+      results_table(rows, domain),
+    )
   text = _replace(text, SUMMARY_START, SUMMARY_END, summary_table(rows))
   text = _replace(text, START, END, run_table(rows))
   text = _replace(text, PROGRESS_START, PROGRESS_END, progress(rows))
   text = _replace(text, SOLVED_START, SOLVED_END, solved_table(rows))
   baselines.DOC.write_text(text)
-  print(summary_table(rows))
-  print('figures:', ', '.join(figures(rows)))
-  print('shipped:', ', '.join(ship(rows)) or 'none')
+  if baselines.README.is_file():
+    readme = baselines.README.read_text()
+    baselines.README.write_text(
+      _replace(readme, SUMMARY_START, SUMMARY_END, readme_table(rows))
+    )
+  written = figures(rows)
+  (baselines.FIGURES / 'figures.json').write_text(
+    json.dumps({'records_sha256': records_digest(), 'figures': written},
+               indent=1) + '\n'
+  )  # fmt: skip
+  print(readme_table(rows))
+  print('figures:', ', '.join(written))
