@@ -345,6 +345,7 @@ def test_the_chosen_run_is_shipped_when_its_policy_is_at_hand(sandbox):
   # The rule's run (trpo seed 0) is not at hand: what is shipped stays.
   policy(shipped, 'sac', 0)
   policy(run('sac', 0) / 'policy_best.npz', 'sac', 0)
+  (run('sac', 0) / baselines.TEST).write_text('{}')
   assert selection.best_policy('dclaw', 'pose_random') is None
   assert report.ship(rows) == [
     'dclaw/pose_random (sac, seed 0; the rule ships trpo seed 0, whose run '
@@ -352,6 +353,9 @@ def test_the_chosen_run_is_shipped_when_its_policy_is_at_hand(sandbox):
     '--force)'
   ]
   policy(run('trpo', 0) / 'policy_best.npz', 'trpo', 0)
+  # A run in progress (its test not read) holds a policy of its own.
+  assert selection.best_policy('dclaw', 'pose_random') is None
+  (run('trpo', 0) / baselines.TEST).write_text('{}')
   assert report.ship(rows) == ['dclaw/pose_random (trpo, seed 0)']
   assert selection.best_policy('dclaw', 'pose_random') == (
     run('trpo', 0) / 'policy_best.npz'

@@ -44,18 +44,21 @@ def test_a_task_figure_has_log_steps_seed_lines_and_a_caption():
   )
   try:
     (axis,) = figure.axes
-    assert axis.get_xscale() == 'symlog'
-    assert axis.get_xlim()[0] == 0
+    assert axis.get_xscale() == 'log'
+    # From the first evaluation after step 0; every agent to the edge.
+    assert axis.get_xlim()[0] == 10_000
     assert axis.get_xlim()[1] >= 2_000_000
+    assert all(line.get_xdata()[-1] == 2_000_000 for line in axis.get_lines()
+               if len(line.get_xdata()) > 2)  # fmt: skip
     assert 'log scale' in axis.get_xlabel()
     labels = axis.get_legend_handles_labels()[1]
     assert labels == ['sac (2 seeds)', 'trpo (1 seeds)']
-    # Per agent one thick mean line and one thin line per seed.
-    assert len(axis.get_lines()) == (1 + 2) + (1 + 1)
+    # Per agent one thick mean line and one thin line per seed; the bar.
+    assert len(axis.get_lines()) == (1 + 2) + (1 + 1) + 1
     widths = sorted({line.get_linewidth() for line in axis.get_lines()})
     assert widths[0] < widths[-1]
     caption = ' '.join(text.get_text() for text in figure.texts)
-    assert 'worst to best seed' in caption
+    assert 'worst to best seed' in caption and 'solved (0.8)' in caption
   finally:
     pyplot.close(figure)
 

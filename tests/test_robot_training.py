@@ -63,7 +63,36 @@ def _inject(monkeypatch, on_step) -> list:
   return envs
 
 
-def test_a_run_learns_on_the_bus_records_every_step_and_resumes(tmp_path):
+def _count_random_actions(monkeypatch) -> list[int]:
+  """The robot steps at which a run past its learning start draws a
+  random action (it should act with its actor)."""
+  steps = []
+  episode = robot._RobotRun.episode
+
+  class Watched:
+    def __init__(self, rng, run):
+      self.rng, self.run = rng, run
+
+    def uniform(self, *args, **kwargs):
+      if self.run.steps >= self.run.learning_starts:
+        steps.append(self.run.steps)
+      return self.rng.uniform(*args, **kwargs)
+
+    def __getattr__(self, name):
+      return getattr(self.rng, name)
+
+  def watched(run, purpose, policy=None):
+    if not isinstance(run.rng, Watched):
+      run.rng = Watched(run.rng, run)
+    return episode(run, purpose, policy)
+
+  monkeypatch.setattr(robot._RobotRun, 'episode', watched)
+  return steps
+
+
+def test_a_run_learns_on_the_bus_records_every_step_and_resumes(
+  tmp_path, monkeypatch
+):
   lines = []
   history = robot.train_on_robot(CONFIG, VIRTUAL, tmp_path, log=lines.append)
   # Evaluated on the robot before learning and at the end.
@@ -88,7 +117,10 @@ def test_a_run_learns_on_the_bus_records_every_step_and_resumes(tmp_path):
   assert 'period p50 50.0 ms' in lines[-2] or 'period p50 50.0 ms' in lines[-3]
   for name in (train_lib.POLICY, train_lib.BEST_POLICY, train_lib.CHECKPOINT):
     assert (tmp_path / name).is_file()
-  # --resume refills the replay buffer from the recording and goes on.
+  # --resume refills the replay buffer from the recording and goes on,
+  # acting with the restored actor from its first step (never with the
+  # random actions of a run that has not started learning).
+  random_steps = _count_random_actions(monkeypatch)
   more = robot.train_on_robot(
     CONFIG.__class__(**{**CONFIG.__dict__, 'steps': steps + 160}),
     VIRTUAL,
@@ -97,6 +129,7 @@ def test_a_run_learns_on_the_bus_records_every_step_and_resumes(tmp_path):
     log=lines.append,
   )
   assert f'resuming at robot step {steps}: {steps} recorded' in '\n'.join(lines)
+  assert random_steps == []
   assert more[-1]['env_steps'] >= steps + 160
   assert (
     _recorded_steps(tmp_path / robot.RECORDING)

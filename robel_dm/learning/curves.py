@@ -52,9 +52,12 @@ def plot_run(log_path: pathlib.Path, output: pathlib.Path, title: str):
 
 
 _CAPTION = (
-  'thick: mean over seeds; thin: each seed; band: worst to best seed; '
-  'a seed that stopped on success keeps its last value'
+  'Success of the training evaluations, held from each evaluation to the '
+  'next. Thick: mean over seeds; thin: each seed;\nband: worst to best '
+  'seed. A seed that stopped (on success, or at its budget) keeps its '
+  'last value to the right edge. Dashed: solved (0.8).'
 )
+SOLVED = 0.8
 
 
 def carried_forward(logs: Sequence[list[dict]]) -> tuple[Any, Any]:
@@ -90,17 +93,20 @@ def carried_forward(logs: Sequence[list[dict]]) -> tuple[Any, Any]:
   return grid, values
 
 
-def _log_steps(axis: Any, steps: Sequence[float]):
-  """Log-scales the step axis, keeping step 0: linear from 0 to the power
-  of ten at or below the first positive step, logarithmic beyond it."""
+def _log_steps(axis: Any, steps: Sequence[float]) -> None:
+  """A logarithmic env-step axis from the first evaluation after step 0
+  to the last."""
+  axis.set_xscale('log')
+  axis.set_xlim(min(steps), max(steps) * 1.1)
+
+
+def _to_edge(grid: Any, values: Any, edge: float) -> tuple[Any, Any]:
+  """The curves carried on at their last values to `edge` env steps."""
   import numpy as np  # noqa: PLC0415
 
-  positive = [step for step in steps if step > 0] or [1e3]
-  low = int(np.floor(np.log10(min(positive))))
-  high = int(np.floor(np.log10(max(positive))))
-  axis.set_xscale('symlog', linthresh=10.0**low, linscale=0.3)
-  axis.set_xticks([0] + [10.0**power for power in range(low, high + 1)])
-  axis.set_xlim(0, max(positive) * 1.15)
+  if grid[-1] >= edge:
+    return grid, values
+  return np.append(grid, edge), np.hstack([values, values[:, -1:]])
 
 
 def task_figure(runs: dict[str, Sequence[list[dict]]], title: str) -> Any:
@@ -115,30 +121,39 @@ def task_figure(runs: dict[str, Sequence[list[dict]]], title: str) -> Any:
     The matplotlib Figure; the caller saves and closes it.
   """
   pyplot = _pyplot()
-  figure, axis = pyplot.subplots(figsize=(6, 4))
-  steps = []
-  for name, logs in sorted(runs.items()):
-    grid, values = carried_forward(logs)
-    if not len(values):
-      continue
-    steps.extend(grid)
-    line = axis.plot(
+  figure, axis = pyplot.subplots(figsize=(6.4, 4.4))
+  # Step 0 (the untrained actor) has no place on a log axis.
+  curves = {
+    name: carried_forward(
+      [[row for row in log if row['env_steps'] > 0] for log in logs]
+    )
+    for name, logs in sorted(runs.items())
+  }
+  curves = {name: curve for name, curve in curves.items() if len(curve[1])}
+  steps = [step for grid, _ in curves.values() for step in grid] or [1, 10]
+  for name, (grid, values) in curves.items():
+    grid, values = _to_edge(grid, values, max(steps))
+    line = axis.step(
       grid,
       values.mean(axis=0),
+      where='post',
       linewidth=2.2,
       label=f'{name} ({len(values)} seeds)',
     )[0]
     colour = line.get_color()
     for seed in values:
-      axis.plot(grid, seed, color=colour, linewidth=0.8, alpha=0.6)
+      axis.step(grid, seed, where='post', color=colour, linewidth=0.9,
+                alpha=0.7)  # fmt: skip
     axis.fill_between(
       grid,
       values.min(axis=0),
       values.max(axis=0),
+      step='post',
       color=colour,
-      alpha=0.15,
+      alpha=0.12,
       linewidth=0,
     )
+  axis.axhline(SOLVED, color='grey', linestyle='--', linewidth=0.9)
   _log_steps(axis, steps)
   axis.set(
     xlabel='env steps (log scale)',
@@ -149,8 +164,8 @@ def task_figure(runs: dict[str, Sequence[list[dict]]], title: str) -> Any:
   axis.grid(alpha=0.3, which='both')
   if axis.get_legend_handles_labels()[0]:
     axis.legend(fontsize=8, loc='upper left')
-  figure.text(0.5, 0.01, _CAPTION, ha='center', va='bottom', fontsize=6.5)
-  figure.tight_layout(rect=(0, 0.04, 1, 1))
+  figure.text(0.5, 0.01, _CAPTION, ha='center', va='bottom', fontsize=7)
+  figure.tight_layout(rect=(0, 0.08, 1, 1))
   return figure
 
 

@@ -461,6 +461,10 @@ def _actor_loop(config, options, run, actor, learner, metadata) -> None:
   # the goals it has already seen.
   actor.open(config.seed * 1000 + actor.episodes)
   actor.rng = np.random.default_rng([config.seed, actor.steps])
+  if actor.steps >= actor.learning_starts:
+    # A resumed run acts with its restored networks from its first step,
+    # not with random actions while the learner loads them.
+    learner.wait_for_actor()
   run.start_clocks()
 
   def evaluate_now() -> bool:

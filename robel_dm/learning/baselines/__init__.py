@@ -494,16 +494,11 @@ def _write(rows: list[dict]) -> None:
 
 
 def forget(run: Run) -> None:
-  """Removes the run's folder and record, so that it is made again."""
+  """Removes the run's folder, so that `train_run` makes it again; its
+  record stays until the new one replaces it."""
   import shutil  # noqa: PLC0415
 
   shutil.rmtree(run.directory, ignore_errors=True)
-  with open(RESULTS.with_suffix('.lock'), 'w') as lock:
-    fcntl.flock(lock, fcntl.LOCK_EX)
-    if RESULTS.is_file():
-      mine = _key(dataclasses.asdict(run) | {'task_kwargs': run.task_kwargs})
-      rows = [r for r in json.loads(RESULTS.read_text()) if _key(r) != mine]
-      _write(rows)
 
 
 def _say_recorded(run: Run, log) -> None:

@@ -33,18 +33,28 @@ def _steps(value: float) -> str:
   return '> budget' if value == selection.UNSOLVED else f'{value:,.0f}'
 
 
+def _interval(row: dict) -> tuple[float, float]:
+  """The record's 95% interval; for a protocol-1 record, computed from its
+  success and episodes."""
+  if 'success_interval' in row:
+    return tuple(row['success_interval'])
+  if row['deterministic']:
+    return row['success'], row['success']
+  return baselines.interval(row['success'], row['final_episodes'])
+
+
 def _marks(row: dict) -> str:
   """† a record of protocol 1 (being made again); ~ a 95% interval that
-  straddles the solved rate."""
+  contains the solved rate."""
   marks = '' if row.get('protocol', 1) >= baselines.PROTOCOL else '†'
-  low, high = row.get('success_interval', (row['success'],) * 2)
-  if low < baselines.PLAN['solved'] <= high and low != high:
+  low, high = _interval(row)
+  if low < baselines.PLAN['solved'] < high:
     marks += '~'
   return marks
 
 
 def _success(row: dict) -> str:
-  low, high = row.get('success_interval', (row['success'],) * 2)
+  low, high = _interval(row)
   if low == high:
     return f'{row["success"]:.2f}{_marks(row)}'
   return f'{row["success"]:.2f} ({low:.2f}-{high:.2f}){_marks(row)}'
@@ -126,7 +136,7 @@ def results_table(rows: list[dict], domain: str) -> str:
       kind: statistics.fmean(row['violations'][kind] for row in group)
       for kind in group[0]['violations']
     }
-    shipped = _shipped_cell(dom, task, valve)
+    shipped = _shipped_cell(dom, task, valve, choice.shipped)
     lines.append(
       f'| {name} | `{choice.algo}`: {choice.why} | {_spread(group)} '
       f'| {solved} of {len(group)} '
@@ -138,11 +148,21 @@ def results_table(rows: list[dict], domain: str) -> str:
   return '\n'.join(lines)
 
 
-def _shipped_cell(domain: str, task: str, valve: str) -> str:
+def _shipped_cell(
+  domain: str, task: str, valve: str, rule: dict | None = None
+) -> str:
+  """The shipped policy's agent and seed, and the rule's run where that
+  differs (its run is not at hand yet)."""
   made = baselines.shipped_metadata(domain, task) if valve == 'valve3' else None
   if made is None:
     return '-'
-  return f'`{made["algo"]}` seed {made["seed"]}'
+  cell = f'`{made["algo"]}` seed {made["seed"]}'
+  if rule is not None and (rule['algo'], rule['seed']) != (
+    made['algo'],
+    made['seed'],
+  ):
+    cell += f' (rule: `{rule["algo"]}` seed {rule["seed"]}, being made)'
+  return cell
 
 
 def _by_task_and_agent(rows: list[dict]) -> dict[tuple[str, str], list]:
@@ -377,7 +397,7 @@ def readme_table(rows: list[dict]) -> str:
       f'| {domain}/{task} | `{choice.algo}` | {_spread(group)} '
       f'| {sum(map(baselines.solved, group))} of {len(group)} '
       f'| {_steps(selection.median_steps_to_80(group))} '
-      f'| {_shipped_cell(domain, task, valve)} |'
+      f'| {_shipped_cell(domain, task, valve, choice.shipped)} |'
     )
   return '\n'.join(lines)
 

@@ -97,7 +97,12 @@ def _why(algo: str, by_agent: dict[str, list[dict]], ranked: list[str]) -> str:
   group = by_agent[algo]
   bar = baselines.PLAN['solved']
   solved = sum(validation_success(row) >= bar for row in group)
-  text = f'solves {solved} of {len(group)} seeds on validation'
+  reading = (
+    'validation'
+    if all('validation' in row for row in group)
+    else 'its reported success (protocol 1)'
+  )
+  text = f'solves {solved} of {len(group)} seeds on {reading}'
   if len(ranked) < 2:
     return text + ' (the only agent run)'
   runner_up = by_agent[ranked[1]]
@@ -107,7 +112,7 @@ def _why(algo: str, by_agent: dict[str, list[dict]], ranked: list[str]) -> str:
   mine, theirs = median_steps_to_80(group), median_steps_to_80(runner_up)
   if mine < theirs:
     return f'{text}, in the fewest env steps to 80% (median over seeds)'
-  return f'{text}, with the highest mean validation success'
+  return f'{text}, with the highest mean success on it'
 
 
 def best_policy(
@@ -129,9 +134,10 @@ def best_policy(
   row = choose(by_agent).shipped
   if row is None:
     return None
-  source = baselines.Run(domain, task, row['algo'], row['seed']).directory
-  if (source / 'policy_best.npz').is_file():
-    return source / 'policy_best.npz'
+  run = baselines.Run(domain, task, row['algo'], row['seed'])
+  # A run being made again holds a best policy of its own, not its row's.
+  if baselines.finished(run) and (run.directory / 'policy_best.npz').is_file():
+    return run.directory / 'policy_best.npz'
   if metadata and (metadata['algo'], metadata['seed']) == (
     row['algo'],
     row['seed'],
