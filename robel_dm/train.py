@@ -107,12 +107,18 @@ def _define_flags() -> None:
     1.0,
     'With --device_path: gradient updates per robot step, at most.',
   )
+  flags.DEFINE_bool(
+    'wait_for_learner',
+    None,
+    'With --device_path: the robot waits for the learner after every step '
+    '(default: only on the simulated-time bus, --device_path=virtual).',
+  )
 
 
 # Flags of a run on a robot beyond the robot itself (evaluate's
 # ROBOT_OPTION_FLAGS).
 _ROBOT_RUN_FLAGS = ('dynamics', 'hours', 'max_violations', 'reset_attempts',
-                    'updates_per_step')  # fmt: skip
+                    'updates_per_step', 'wait_for_learner')  # fmt: skip
 
 
 FLAGS = flags.FLAGS
@@ -127,6 +133,7 @@ def main(argv):
   from robel_dm import evaluate, task_args  # noqa: PLC0415
 
   try:
+    from robel_dm.learning import run_config  # noqa: PLC0415
     from robel_dm.learning import train as learning  # noqa: PLC0415
 
     config = learning.RunConfig(
@@ -140,7 +147,7 @@ def main(argv):
       eval_every=FLAGS.eval_every,
       eval_episodes=FLAGS.eval_episodes,
       safety_penalty=FLAGS.safety_penalty,
-      hidden=learning.parse_hidden(FLAGS.hidden),
+      hidden=run_config.parse_hidden(FLAGS.hidden),
       demos=tuple(FLAGS.demos),
       demo_episodes=FLAGS.demo_episodes,
       stop_at_success=FLAGS.stop_at_success,

@@ -137,6 +137,23 @@ def test_a_run_learns_on_the_bus_records_every_step_and_resumes(
   )
 
 
+def test_on_the_simulated_time_bus_the_robot_keeps_the_learners_pace(
+  tmp_path,
+):
+  # A real robot's control period leaves the learner time for its updates;
+  # in simulated time nothing would, so the robot waits for the learner:
+  # at the end of every episode past the learning start (500 steps) the
+  # learner has made all the updates the steps allow (one per step, in
+  # chunks of 8).
+  assert VIRTUAL.paced_by_learner
+  robot.train_on_robot(CONFIG, VIRTUAL, tmp_path, log=lambda line: None)
+  rows = _rows(tmp_path / robot.PROGRESS_LOG)
+  late = [row for row in rows if row['robot_steps'] > 600]
+  assert late
+  for row in late:
+    assert row['updates'] == (row['robot_steps'] - 500) // 8 * 8, row
+
+
 def test_a_fault_ends_the_episode_and_training_goes_on(tmp_path, monkeypatch):
   def lose_goals(env, n):
     if n == 100:  # In the second training episode.
@@ -342,6 +359,9 @@ class _FakeLearner:
 
   def wait_for_actor(self):
     return self.actor
+
+  def wait_until_caught_up(self):
+    pass
 
   def check_alive(self):
     pass

@@ -86,3 +86,19 @@ def test_without_tensorboardx_a_run_says_so_and_trains(tmp_path, monkeypatch):
   assert len(history) == 2
   assert any('TensorBoard logs are off' in line for line in lines)
   assert not (tmp_path / telemetry.TENSORBOARD_DIR).exists()
+
+
+def test_tensorboard_itself_reads_the_losses(run):
+  # What `tensorboard --logdir` shows (the tensorboard extra): TensorBoard's
+  # own reader, not the test's, finds the evaluations and the losses.
+  accumulator = pytest.importorskip(
+    'tensorboard.backend.event_processing.event_accumulator'
+  )
+  output, history, _ = run
+  (events,) = (output / 'tensorboard').glob('events.out.tfevents.*')
+  reader = accumulator.EventAccumulator(str(events))
+  reader.Reload()
+  scalars = set(reader.Tags()['scalars'])
+  assert {'eval/success_rate', 'train/actor_loss', 'train/critic_loss',
+          'train/ent_coef'} <= scalars  # fmt: skip
+  assert len(reader.Scalars('eval/success_rate')) == len(history)

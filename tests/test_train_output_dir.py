@@ -14,7 +14,7 @@ import pytest
 pytest.importorskip('stable_baselines3')
 pytest.importorskip('sbx')
 
-from robel_dm.learning import robot, telemetry  # noqa: E402
+from robel_dm.learning import robot, run_files, telemetry  # noqa: E402
 from robel_dm.learning import train as learning  # noqa: E402
 
 QUIET = {'log': lambda line: None}
@@ -116,7 +116,7 @@ def test_resume_and_overwrite_together_are_refused(old_run, tmp_path):
 
 
 def test_clearing_removes_only_the_runs_files(tmp_path):
-  names = learning.RUN_FILES + (robot.PROGRESS_LOG, robot.ROBOT)
+  names = run_files.RUN_FILES + (robot.PROGRESS_LOG, robot.ROBOT)
   for name in names:
     (tmp_path / name).write_text('old')
   (tmp_path / robot.RECORDING / 'meta').mkdir(parents=True)

@@ -67,12 +67,14 @@ class _Spaces(gymnasium.Env):
     raise NotImplementedError('the learner never steps an environment')
 
 
-def learner_main(setup: LearnerSetup, inbox, outbox) -> None:
+def learner_main(setup: LearnerSetup, inbox, outbox, progress) -> None:
   """The learner process: replay buffer in, actor weights out.
 
   Messages in: ('data', demos.Transitions) to store; ('save',) write the
   checkpoint; ('stop',) save and end. Out: ('actor', layers, updates),
-  ('saved', updates), ('stopped', updates), ('error', text).
+  ('saved', updates), ('stopped', updates), ('error', text). `progress`
+  (two shared integers): the transitions for which it has made every
+  update they allow, and its updates so far.
   """
   try:
     # Ctrl-C reaches the whole process group: the actor decides when the
@@ -100,14 +102,17 @@ def learner_main(setup: LearnerSetup, inbox, outbox) -> None:
     model.set_logger(Logger(folder=None, output_formats=[]))
     chunk = int(model.gradient_steps)
     starts = int(model.learning_starts)
-    _learn(model, setup, chunk, starts, checkpoint, inbox, outbox)
+    _learn(model, setup, (chunk, starts), checkpoint, (inbox, outbox),
+           progress)  # fmt: skip
   except BaseException as error:  # noqa: BLE001 (reported to the actor)
     outbox.put(('error', f'{type(error).__name__}: {error}'))
     outbox.cancel_join_thread()  # The actor may be gone: never hang.
     raise
 
 
-def _learn(model, setup, chunk, starts, checkpoint, inbox, outbox) -> None:
+def _learn(model, setup, schedule, checkpoint, queues, progress) -> None:
+  chunk, starts = schedule
+  inbox, outbox = queues
   buffer = model.replay_buffer
   # Updates already made by the checkpoint's networks (a resumed run's
   # replayed transitions do not earn new ones).
@@ -129,6 +134,9 @@ def _learn(model, setup, chunk, starts, checkpoint, inbox, outbox) -> None:
   while True:
     allowed = (seen - starts) * setup.updates_per_step
     can_update = seen >= starts and updates + chunk <= allowed
+    progress[1] = updates
+    if not can_update:
+      progress[0] = seen  # An actor that waits for us may go on.
     try:
       # Waits for data when there is nothing to learn yet.
       message = inbox.get_nowait() if can_update else inbox.get(timeout=1.0)
@@ -155,6 +163,7 @@ def _learn(model, setup, chunk, starts, checkpoint, inbox, outbox) -> None:
         for _ in range(min(max(backlog, 0), _STOP_UPDATES) // chunk):
           model.train(gradient_steps=chunk, batch_size=model.batch_size)
           updates += chunk
+        progress[1] = updates
         save()
         outbox.put(('stopped', updates))
         return
@@ -178,18 +187,43 @@ class Learner:
     context = multiprocessing.get_context('spawn')
     self._inbox = context.Queue()
     self._outbox = context.Queue()
+    # Transitions caught up with, updates made (see learner_main).
+    self._progress = context.Array('q', 2)
+    self._sent = 0
     self._process = context.Process(
       target=learner_main,
-      args=(setup, self._inbox, self._outbox),
+      args=(setup, self._inbox, self._outbox, self._progress),
       name='robel_dm-learner',
       daemon=True,
     )
     self._process.start()
-    self.updates = 0
     self.actor: StochasticActor | None = None
+
+  @property
+  def updates(self) -> int:
+    """The gradient updates the learner has made."""
+    return int(self._progress[1])
 
   def add(self, transitions: demos.Transitions) -> None:
     self._inbox.put(('data', transitions))
+    self._sent += len(transitions)
+
+  def wait_until_caught_up(self, timeout: float = _STOP_TIMEOUT) -> None:
+    """Waits until the learner has made every update the transitions sent
+    so far allow: a robot in simulated time keeps the pace a learner on a
+    real robot keeps, instead of outrunning it."""
+    deadline = time.monotonic() + timeout
+    checked = time.monotonic()
+    while self._progress[0] < self._sent:
+      now = time.monotonic()
+      if now > deadline:
+        raise RuntimeError(
+          f'the learner did not catch up within {timeout:.0f} s'
+        )
+      if now - checked > 0.5:
+        self.check_alive()
+        checked = now
+      time.sleep(0.0002)
 
   def poll(self) -> None:
     """Takes the newest actor weights sent (never waits)."""
@@ -204,11 +238,8 @@ class Learner:
     kind = message[0]
     if kind == 'actor':
       self.actor = StochasticActor(message[1])
-      self.updates = message[2]
     elif kind == 'error':
       raise RuntimeError(f'the learner process failed: {message[1]}')
-    else:
-      self.updates = message[1]
     return kind
 
   def wait_for_actor(self, timeout: float = _STOP_TIMEOUT) -> 'StochasticActor':

@@ -43,7 +43,7 @@ from robel_dm import policies, recording, suite
 from robel_dm.hardware import resets
 from robel_dm.hardware.dynamixel import errors as dynamixel_errors
 from robel_dm.hardware.tracking import tracker as tracking
-from robel_dm.learning import agents, demos
+from robel_dm.learning import agents, demos, run_files
 from robel_dm.learning import learner as learner_lib
 from robel_dm.learning import train as train_lib
 from robel_dm.tasks import base
@@ -62,7 +62,7 @@ FAULTS = (
 # behaviour cloning learns from data and is evaluated on it.
 ROBOT_AGENTS = ('sac', 'sac_demos', 'bc')
 # What --resume may change besides RunConfig's resumable fields.
-RESUMABLE_OPTIONS = ('device_path', 'hours')
+RESUMABLE_OPTIONS = ('device_path', 'hours', 'wait_for_learner')
 
 
 @dataclasses.dataclass(frozen=True)
@@ -78,6 +78,11 @@ class RobotRunOptions:
       (position + velocity + current) reach this; None: never.
     reset_attempts: failed resets in a row after which the run stops.
     updates_per_step: gradient updates per recorded transition, at most.
+    wait_for_learner: after every step, the robot waits until the learner
+      has made the updates that step allows (`updates_per_step`), as a
+      learner keeping a real robot's pace would have. None: when the robot
+      runs in simulated time (device 'virtual'), where nothing else would
+      hold the robot back; a real robot keeps its control period.
   """
 
   robot: suite.RobotOptions
@@ -86,6 +91,14 @@ class RobotRunOptions:
   max_violations: int | None = None
   reset_attempts: int = 3
   updates_per_step: float = 1.0
+  wait_for_learner: bool | None = None
+
+  @property
+  def paced_by_learner(self) -> bool:
+    """Whether the robot waits for the learner after every step."""
+    if self.wait_for_learner is None:
+      return self.robot.device_path == 'virtual'
+    return self.wait_for_learner
 
   def check(self) -> None:
     """Raises ValueError naming the first bad option."""
@@ -238,6 +251,8 @@ class _RobotRun:
           episodes=0,
         )
       )
+      if self.options.paced_by_learner:
+        self.learner.wait_until_caught_up()
       observation = next_observation
       self.steps += 1
       result.steps += 1
@@ -376,7 +391,7 @@ def train_on_robot(
   output = pathlib.Path(output_dir)
   robot_files = (RECORDING, PROGRESS_LOG, ROBOT)
   train_lib.check_output_dir(
-    output, resume, overwrite, train_lib.RUN_MARKERS + robot_files
+    output, resume, overwrite, run_files.RUN_MARKERS + robot_files
   )
   if resume:
     train_lib.check_resume(output, config, need_checkpoint=False)
@@ -384,7 +399,7 @@ def train_on_robot(
   data = train_lib.load_data(config, keys)
   recorded = _recorded(output, config, keys) if resume else None
   if overwrite:  # After every check: a refused run removes nothing.
-    train_lib.clear_output_dir(output, train_lib.RUN_FILES + robot_files)
+    train_lib.clear_output_dir(output, run_files.RUN_FILES + robot_files)
   output.mkdir(parents=True, exist_ok=True)
   (output / train_lib.CONFIG).write_text(json.dumps(config.to_json(), indent=1))
   (output / ROBOT).write_text(json.dumps(options.to_json(), indent=1))
@@ -504,6 +519,9 @@ def _evaluate_on_robot(config, options, output, run, policy, metadata, log):
       pass
 
     def add(self, batch):
+      pass
+
+    def wait_until_caught_up(self):
       pass
 
   actor = _RobotRun(config, options, output, metadata, _NoLearner(), log)

@@ -26,156 +26,37 @@ it or --overwrite starts it over (removing the run's files first).
 Needs the `learn` extra.
 """
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 import dataclasses
 import json
 import pathlib
 import pickle
-import shutil
 import time
 from typing import Any
 
 import gymnasium
-import numpy as np
 
 from robel_dm import evaluate, policies, suite
 from robel_dm.learning import agents, curves, demos, replay, telemetry
 
-CHECKPOINT = 'checkpoint.zip'
-REPLAY_BUFFER = 'replay_buffer.pkl'
-ENV_STATE = 'env_state.pkl'
-POLICY = 'policy.npz'
-BEST_POLICY = 'policy_best.npz'
-EVAL_LOG = 'eval.jsonl'
-CURVE = 'learning_curve.png'
-CONFIG = 'config.json'
-METADATA = 'metadata.json'
-# Any of these shows that a directory holds a run.
-RUN_MARKERS = (CONFIG, EVAL_LOG, CHECKPOINT, POLICY)
-# What a run writes; --overwrite removes these (and the TensorBoard events).
-RUN_FILES = (
-  CHECKPOINT,
-  REPLAY_BUFFER,
-  ENV_STATE,
-  POLICY,
+# A run's settings and files, by the names callers know here.
+from robel_dm.learning.run_config import RESUMABLE_CHANGES, RunConfig
+from robel_dm.learning.run_files import (
   BEST_POLICY,
-  EVAL_LOG,
-  CURVE,
+  CHECKPOINT,
   CONFIG,
+  CURVE,
+  ENV_STATE,
+  EVAL_LOG,
   METADATA,
+  POLICY,
+  REPLAY_BUFFER,
+  check_output_dir,
+  clear_output_dir,
 )
-EVENT_FILES = 'events.out.tfevents.*'
+
 # Evaluation episodes are seeded from here on, training ones below it.
 EVAL_SEED_OFFSET = 1_000_000
-# What --resume may change: the budget and how often it is evaluated.
-RESUMABLE_CHANGES = (
-  'steps',
-  'eval_every',
-  'eval_episodes',
-  'stop_at_success',
-  'stop_streak',
-)
-
-
-@dataclasses.dataclass(frozen=True)
-class RunConfig:
-  """What a training run is.
-
-  Attributes:
-    domain: 'dclaw' or 'dkitty'.
-    task: the task, e.g. 'turn_fixed'.
-    task_kwargs: the task's arguments (e.g. {'valve': 'valve4'}).
-    algo: an agent of `agents.AGENTS`.
-    seed: seeds the agent and the training episodes.
-    steps: env steps to train for (epochs for `bc`).
-    num_envs: environments stepped together.
-    eval_every: env steps (epochs for `bc`) between evaluations.
-    eval_episodes: episodes per evaluation.
-    safety_penalty: the training reward minus this per safety violation.
-    hidden: hidden layer sizes; the agent's own if empty.
-    demos: recording directories of demonstrations (bc, sac_demos).
-    demo_episodes: how many demonstration episodes to use.
-    stop_at_success: end the run early once `stop_streak` evaluations in a
-      row reach this success rate (never if None).
-    stop_streak: see `stop_at_success`.
-    from_recording: recordings (of this task, simulated or on a robot,
-      complete episodes or not) whose every transition starts the replay
-      buffer of an off-policy agent, or joins behaviour cloning's data.
-  """
-
-  domain: str
-  task: str
-  task_kwargs: dict[str, Any] = dataclasses.field(default_factory=dict)
-  algo: str = agents.DEFAULT
-  seed: int = 0
-  steps: int = 30_000
-  num_envs: int = 1
-  eval_every: int = 5_000
-  eval_episodes: int = 10
-  safety_penalty: float = 0.0
-  hidden: tuple[int, ...] = ()
-  demos: tuple[str, ...] = ()
-  demo_episodes: int = 20
-  stop_at_success: float | None = None
-  stop_streak: int = 1
-  from_recording: tuple[str, ...] = ()
-
-  @property
-  def agent(self) -> agents.Agent:
-    return agents.get(self.algo)
-
-  @property
-  def layers(self) -> tuple[int, ...]:
-    return tuple(self.hidden) or self.agent.hidden
-
-  def check(self) -> None:
-    """Raises ValueError naming the first bad setting."""
-    agent = self.agent
-    for name in (
-      'steps',
-      'num_envs',
-      'eval_every',
-      'eval_episodes',
-      'stop_streak',
-    ):
-      if getattr(self, name) < 1:
-        raise ValueError(f'{name} must be >= 1, got {getattr(self, name)}')
-    if self.safety_penalty < 0 or not np.isfinite(self.safety_penalty):
-      raise ValueError(
-        f'safety_penalty must be >= 0, got {self.safety_penalty}'
-      )
-    if any(size < 1 for size in self.layers):
-      raise ValueError(f'hidden sizes must be >= 1, got {self.hidden}')
-    if agent.needs_demos and not (self.demos or self.from_recording):
-      raise ValueError(f'--algo={self.algo} learns from --demos=DIR')
-    if self.from_recording and agent.kind == agents.ON_POLICY:
-      raise ValueError(
-        f'--algo={self.algo} learns on-policy: it cannot start from '
-        '--from_recording'
-      )
-    if self.demos and not agent.needs_demos:
-      raise ValueError(f'--algo={self.algo} does not use --demos')
-    if self.demo_episodes < 1:
-      raise ValueError('demo_episodes must be >= 1')
-
-  def to_json(self) -> dict[str, Any]:
-    data = dataclasses.asdict(self)
-    data['hidden'] = list(self.layers)
-    data['demos'] = list(self.demos)
-    data['from_recording'] = list(self.from_recording)
-    # What the agent was built with: a resume under other defaults (a newer
-    # robel_dm) would otherwise go on with other settings unnoticed.
-    data['hyperparameters'] = dict(self.agent.hyperparameters)
-    return data
-
-  @classmethod
-  def from_json(cls, data: dict[str, Any]) -> 'RunConfig':
-    fields = {f.name for f in dataclasses.fields(cls)}
-    data = {k: v for k, v in data.items() if k in fields}
-    data['hidden'] = tuple(data.get('hidden', ()))
-    data['demos'] = tuple(data.get('demos', ()))
-    data['from_recording'] = tuple(data.get('from_recording', ()))
-    return cls(**data)
 
 
 class TrainingEnv(gymnasium.Wrapper):
@@ -400,49 +281,6 @@ def check_resume(
     )
 
 
-def check_output_dir(
-  output: str | pathlib.Path,
-  resume: bool,
-  overwrite: bool,
-  markers: Sequence[str] = RUN_MARKERS,
-) -> None:
-  """Raises ValueError if `resume` and `overwrite` are both asked, or if
-  neither is and `output` already holds a run (one of `markers` exists).
-
-  An absent or empty directory, or one holding only other files, is fine.
-  """
-  if resume and overwrite:
-    raise ValueError(
-      '--resume continues a run and --overwrite starts it over: pass one '
-      'of them'
-    )
-  if resume or overwrite:
-    return
-  output = pathlib.Path(output)
-  held = [name for name in markers if (output / name).exists()]
-  if held:
-    raise ValueError(
-      f'{output} already holds a run ({held[0]}): pass --resume to continue '
-      'it or --overwrite to start over'
-    )
-
-
-def clear_output_dir(
-  output: str | pathlib.Path, names: Sequence[str] = RUN_FILES
-) -> None:
-  """Removes a previous run's files from `output`: `names` (files or
-  folders) and the TensorBoard event files; other files stay."""
-  output = pathlib.Path(output)
-  for name in names:
-    path = output / name
-    if path.is_dir() and not path.is_symlink():
-      shutil.rmtree(path)
-    elif path.exists() or path.is_symlink():
-      path.unlink()
-  for path in (output / telemetry.TENSORBOARD_DIR).glob(EVENT_FILES):
-    path.unlink()
-
-
 def _normalized(config: RunConfig, name: str):
   value = getattr(config, name)
   if name == 'hidden':
@@ -658,7 +496,3 @@ def _reinforce(config: RunConfig, run: Run, data, metadata, resume) -> None:
 
 def _demo_count(data) -> int:
   return 0 if data is None else len(data)
-
-
-def parse_hidden(values: Sequence[str]) -> tuple[int, ...]:
-  return tuple(int(value) for value in values if value)

@@ -1,0 +1,123 @@
+"""What a training run is: `RunConfig`, checked before anything runs."""
+
+from collections.abc import Sequence
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+from robel_dm.learning import agents
+
+# What --resume may change: the budget and how often it is evaluated.
+RESUMABLE_CHANGES = (
+  'steps',
+  'eval_every',
+  'eval_episodes',
+  'stop_at_success',
+  'stop_streak',
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+  """What a training run is.
+
+  Attributes:
+    domain: 'dclaw' or 'dkitty'.
+    task: the task, e.g. 'turn_fixed'.
+    task_kwargs: the task's arguments (e.g. {'valve': 'valve4'}).
+    algo: an agent of `agents.AGENTS`.
+    seed: seeds the agent and the training episodes.
+    steps: env steps to train for (epochs for `bc`).
+    num_envs: environments stepped together.
+    eval_every: env steps (epochs for `bc`) between evaluations.
+    eval_episodes: episodes per evaluation.
+    safety_penalty: the training reward minus this per safety violation.
+    hidden: hidden layer sizes; the agent's own if empty.
+    demos: recording directories of demonstrations (bc, sac_demos).
+    demo_episodes: how many demonstration episodes to use.
+    stop_at_success: end the run early once `stop_streak` evaluations in a
+      row reach this success rate (never if None).
+    stop_streak: see `stop_at_success`.
+    from_recording: recordings (of this task, simulated or on a robot,
+      complete episodes or not) whose every transition starts the replay
+      buffer of an off-policy agent, or joins behaviour cloning's data.
+  """
+
+  domain: str
+  task: str
+  task_kwargs: dict[str, Any] = dataclasses.field(default_factory=dict)
+  algo: str = agents.DEFAULT
+  seed: int = 0
+  steps: int = 30_000
+  num_envs: int = 1
+  eval_every: int = 5_000
+  eval_episodes: int = 10
+  safety_penalty: float = 0.0
+  hidden: tuple[int, ...] = ()
+  demos: tuple[str, ...] = ()
+  demo_episodes: int = 20
+  stop_at_success: float | None = None
+  stop_streak: int = 1
+  from_recording: tuple[str, ...] = ()
+
+  @property
+  def agent(self) -> agents.Agent:
+    return agents.get(self.algo)
+
+  @property
+  def layers(self) -> tuple[int, ...]:
+    return tuple(self.hidden) or self.agent.hidden
+
+  def check(self) -> None:
+    """Raises ValueError naming the first bad setting."""
+    agent = self.agent
+    for name in (
+      'steps',
+      'num_envs',
+      'eval_every',
+      'eval_episodes',
+      'stop_streak',
+    ):
+      if getattr(self, name) < 1:
+        raise ValueError(f'{name} must be >= 1, got {getattr(self, name)}')
+    if self.safety_penalty < 0 or not np.isfinite(self.safety_penalty):
+      raise ValueError(
+        f'safety_penalty must be >= 0, got {self.safety_penalty}'
+      )
+    if any(size < 1 for size in self.layers):
+      raise ValueError(f'hidden sizes must be >= 1, got {self.hidden}')
+    if agent.needs_demos and not (self.demos or self.from_recording):
+      raise ValueError(f'--algo={self.algo} learns from --demos=DIR')
+    if self.from_recording and agent.kind == agents.ON_POLICY:
+      raise ValueError(
+        f'--algo={self.algo} learns on-policy: it cannot start from '
+        '--from_recording'
+      )
+    if self.demos and not agent.needs_demos:
+      raise ValueError(f'--algo={self.algo} does not use --demos')
+    if self.demo_episodes < 1:
+      raise ValueError('demo_episodes must be >= 1')
+
+  def to_json(self) -> dict[str, Any]:
+    data = dataclasses.asdict(self)
+    data['hidden'] = list(self.layers)
+    data['demos'] = list(self.demos)
+    data['from_recording'] = list(self.from_recording)
+    # What the agent was built with: a resume under other defaults (a newer
+    # robel_dm) would otherwise go on with other settings unnoticed.
+    data['hyperparameters'] = dict(self.agent.hyperparameters)
+    return data
+
+  @classmethod
+  def from_json(cls, data: dict[str, Any]) -> 'RunConfig':
+    fields = {f.name for f in dataclasses.fields(cls)}
+    data = {k: v for k, v in data.items() if k in fields}
+    data['hidden'] = tuple(data.get('hidden', ()))
+    data['demos'] = tuple(data.get('demos', ()))
+    data['from_recording'] = tuple(data.get('from_recording', ()))
+    return cls(**data)
+
+
+def parse_hidden(values: Sequence[str]) -> tuple[int, ...]:
+  return tuple(int(value) for value in values if value)
