@@ -130,6 +130,11 @@ def test_a_run_learns_on_the_bus_records_every_step_and_resumes(
   )
   assert f'resuming at robot step {steps}: {steps} recorded' in '\n'.join(lines)
   assert random_steps == []
+  # The robot's time (simulated here: 50 ms a step, resets and evaluations
+  # included) goes on across the sessions.
+  before = history[-1]['robot_seconds']
+  assert before >= history[-1]['env_steps'] * 0.05
+  assert more[-1]['robot_seconds'] >= before + 160 * 0.05
   assert more[-1]['env_steps'] >= steps + 160
   assert (
     _recorded_steps(tmp_path / robot.RECORDING)
@@ -173,6 +178,10 @@ def test_a_fault_ends_the_episode_and_training_goes_on(tmp_path, monkeypatch):
   episodes = recording.read(tmp_path / robot.RECORDING)
   assert [e.metadata['complete'] for e in episodes].count(False) == 1
   assert any('hardware fault' in line for line in lines)
+  # A resumed run goes on counting (the fault is not forgotten).
+  more = CONFIG.__class__(**{**config.__dict__, 'steps': 480})
+  robot.train_on_robot(more, VIRTUAL, tmp_path, resume=True, log=lines.append)
+  assert _rows(tmp_path / robot.PROGRESS_LOG)[-1]['faults'] == 1
 
 
 def test_a_robot_that_cannot_be_reset_stops_the_run_saved(

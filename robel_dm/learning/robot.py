@@ -163,6 +163,9 @@ class _RobotRun:
     self.episodes = 0
     self.faults = 0
     self.early_ends = 0
+    # The robot's time in earlier sessions of the run, s (see robot_seconds).
+    self.seconds_before = 0.0
+    self._clock_start = 0.0
     self.rng = np.random.default_rng()
     self.env = None
     self.learning_starts = int(
@@ -188,6 +191,30 @@ class _RobotRun:
       env.close()
       raise
     self.timing = getattr(self.env.physics, 'timing', None)
+    self._clock_start = self.env.physics.clock.now()
+
+  def robot_seconds(self) -> float:
+    """The robot's time the run has used, s, resets and evaluations
+    included, over every session: its clock's (simulated time on the
+    in-process virtual bus, wall time on a robot)."""
+    if self.env is None:
+      return self.seconds_before
+    return (
+      self.seconds_before + self.env.physics.clock.now() - self._clock_start
+    )
+
+  def resume_counters(self, progress: pathlib.Path) -> None:
+    """Continues the faults, early ends and robot time of earlier
+    sessions, from the run's progress log."""
+    if not progress.is_file():
+      return
+    lines = progress.read_text().splitlines()
+    if not lines:
+      return
+    last = json.loads(lines[-1])
+    self.faults = last.get('faults', 0)
+    self.early_ends = last.get('early_ends', 0)
+    self.seconds_before = last.get('robot_seconds', 0.0)
 
   def close(self) -> None:
     if self.env is not None:
@@ -287,6 +314,7 @@ class _RobotRun:
       ),
       'ended': result.ended,
       'updates': self.learner.updates,
+      'robot_seconds': self.robot_seconds(),
       'faults': self.faults,
       'early_ends': self.early_ends,
       'timing': None if timing is None else dataclasses.asdict(timing),
@@ -318,6 +346,7 @@ class _RobotRun:
       'safety': dict(zip(SAFETY_FIELDS, violations.tolist(), strict=True)),
       'episodes': n,
       'on_robot': True,
+      'robot_seconds': self.robot_seconds(),
     }
 
 
@@ -447,6 +476,7 @@ def train_on_robot(
     if recorded is not None:
       actor.steps = len(recorded)
       actor.episodes = recorded.episodes
+      actor.resume_counters(output / PROGRESS_LOG)
       log(
         f'resuming at robot step {actor.steps}: {len(recorded)} recorded '
         'transitions back in the replay buffer'
