@@ -364,7 +364,8 @@ def _check_robot_resume(output: pathlib.Path, options: RobotRunOptions) -> None:
   if differences:
     raise ValueError(
       f'--resume: {output} learned with other robot options (only '
-      '--device_path and --hours may change): ' + '; '.join(differences)
+      '--device_path, --hours and --wait_for_learner may change): '
+      + '; '.join(differences)
     )
 
 
