@@ -22,7 +22,7 @@ pytest.importorskip('dynamixel_sdk')
 from robel_dm import recording, suite  # noqa: E402
 from robel_dm.learning import actor, learner, robot  # noqa: E402
 from robel_dm.learning import train as train_lib  # noqa: E402
-from tests import child_signals  # noqa: E402
+from tests import child_signals, test_telemetry  # noqa: E402
 
 # Pose runs 80 steps per episode; learning starts at 500 steps.
 CONFIG = train_lib.RunConfig(
@@ -115,8 +115,19 @@ def test_a_run_learns_on_the_bus_records_every_step_and_resumes(
   timing = progress[-1]['timing']
   assert timing['steps'] == progress[-1]['steps'] and timing['late_steps'] == 0
   assert 'period p50 50.0 ms' in lines[-2] or 'period p50 50.0 ms' in lines[-3]
-  for name in (train_lib.POLICY, train_lib.BEST_POLICY, train_lib.CHECKPOINT):
-    assert (tmp_path / name).is_file()
+  for name in (train_lib.POLICY, train_lib.BEST_POLICY, train_lib.CHECKPOINT,
+               train_lib.CURVE):  # fmt: skip
+    assert (tmp_path / name).is_file(), name
+  # TensorBoard: the evaluations, the learner's losses and the robot's own.
+  tags = test_telemetry.read_events(tmp_path)
+  for tag in ('eval/success_rate', 'train/critic_loss', 'train/ent_coef',
+              'robot/jitter_p99_ms', 'robot/late_steps', 'robot/faults',
+              'robot/resets', 'robot/violations_velocity',
+              'robot/updates_per_step', 'robot/updates_per_second',
+              'robot/actor_age_s', 'robot/seconds'):  # fmt: skip
+    assert tags.get(tag), tag
+  # Once learning started, one update per step (the robot kept its pace).
+  assert tags['robot/updates_per_step'][-1][1] == pytest.approx(1.0, abs=0.05)
   # --resume refills the replay buffer from the recording and goes on,
   # acting with the restored actor from its first step (never with the
   # random actions of a run that has not started learning).
@@ -278,6 +289,30 @@ def test_kill_9_loses_nothing_already_recorded_and_resume_goes_on(tmp_path):
   robot.train_on_robot(config, VIRTUAL, tmp_path, resume=True, log=lines.append)
   assert f'resuming at robot step {recorded}: {recorded} recorded' in lines[0]
   assert _recorded_steps(tmp_path / robot.RECORDING) >= recorded + 80
+
+
+def test_an_evaluation_cut_short_is_made_again_on_resume(tmp_path, monkeypatch):
+  config = CONFIG.__class__(**{**CONFIG.__dict__, 'eval_every': 320})
+  evaluate, calls = robot._RobotRun.evaluate, []
+
+  def killed_in_the_second(run, policy):
+    calls.append(run.steps)
+    if len(calls) == 2:  # One episode of it, then the kill.
+      run.episode('evaluation', policy)
+      raise KeyboardInterrupt
+    return evaluate(run, policy)
+
+  monkeypatch.setattr(robot._RobotRun, 'evaluate', killed_in_the_second)
+  with pytest.raises(KeyboardInterrupt):
+    robot.train_on_robot(config, VIRTUAL, tmp_path, log=lambda line: None)
+  monkeypatch.setattr(robot._RobotRun, 'evaluate', evaluate)
+  cut = calls[1]
+  assert cut >= 320
+  history = robot.train_on_robot(
+    config, VIRTUAL, tmp_path, resume=True, log=lambda line: None
+  )
+  # The cut evaluation is made first thing: before any training episode.
+  assert [row['env_steps'] for row in history][:2] == [0, cut + 80]
 
 
 def test_learning_starts_from_a_recording(tmp_path):

@@ -72,7 +72,8 @@ def learner_main(setup: LearnerSetup, inbox, outbox, progress) -> None:
 
   Messages in: ('data', demos.Transitions) to store; ('save',) write the
   checkpoint; ('stop',) save and end. Out: ('actor', layers, updates),
-  ('saved', updates), ('stopped', updates), ('error', text). `progress`
+  ('saved', updates), ('stopped', updates), ('error', text), ('values',
+  {name: value}) (the agent's latest logged values). `progress`
   (two shared integers): the transitions for which it has made every
   update they allow, and its updates so far.
   """
@@ -177,7 +178,20 @@ def _learn(model, setup, schedule, checkpoint, queues, progress) -> None:
       now = time.monotonic()
       if now - published >= _PUBLISH_INTERVAL:
         outbox.put(('actor', agents.sac_actor_layers(model), updates))
+        outbox.put(('values', _logged(model)))
         published = now
+
+
+def _logged(model) -> dict[str, float]:
+  """The agent's values logged since the last call (losses, entropy
+  coefficient), taken out of its logger."""
+  values = {
+    name: float(value)
+    for name, value in model.logger.name_to_value.items()
+    if name.startswith('train/') and isinstance(value, int | float)
+  }
+  model.logger.dump()  # No output: this only clears them.
+  return values
 
 
 class Learner:
@@ -198,6 +212,10 @@ class Learner:
     )
     self._process.start()
     self.actor: StochasticActor | None = None
+    # When the actor weights arrived (time.monotonic), and the learner's
+    # latest logged values.
+    self.actor_since = 0.0
+    self.values: dict[str, float] = {}
 
   @property
   def updates(self) -> int:
@@ -238,6 +256,9 @@ class Learner:
     kind = message[0]
     if kind == 'actor':
       self.actor = StochasticActor(message[1])
+      self.actor_since = time.monotonic()
+    elif kind == 'values':
+      self.values = message[1]
     elif kind == 'error':
       raise RuntimeError(f'the learner process failed: {message[1]}')
     return kind

@@ -156,9 +156,10 @@ class _Episode:
 class _RobotRun:
   """The actor side of a run: the robot, the recording, the bookkeeping."""
 
-  def __init__(self, config, options, output, metadata, learner, log):
+  def __init__(self, config, options, output, metadata, learner, run):
     self.config, self.options, self.output = config, options, output
-    self.metadata, self.learner, self.log = metadata, learner, log
+    self.metadata, self.learner = metadata, learner
+    self.log, self.telemetry = run.log, run.telemetry
     self.steps = 0
     self.episodes = 0
     self.faults = 0
@@ -166,6 +167,8 @@ class _RobotRun:
     # The robot's time in earlier sessions of the run, s (see robot_seconds).
     self.seconds_before = 0.0
     self._clock_start = 0.0
+    # The learner's updates and the time at the previous episode's end.
+    self._last_updates = (0, time.monotonic())
     self.rng = np.random.default_rng()
     self.env = None
     self.learning_starts = int(
@@ -321,6 +324,7 @@ class _RobotRun:
     }
     with open(self.output / PROGRESS_LOG, 'a') as file:
       file.write(json.dumps(row) + '\n')
+    self._scalars(result, timing)
     violations = '/'.join(f'{v:.0f}' for v in result.violations)
     self.log(
       f'episode {self.episodes} ({result.purpose}): {result.steps} steps, '
@@ -330,6 +334,35 @@ class _RobotRun:
       + f' | robot steps {self.steps}, updates {self.learner.updates}, '
       f'faults {self.faults}'
     )
+
+  def _scalars(self, result: _Episode, timing) -> None:
+    """The episode's and the run's robot values, to TensorBoard."""
+    updates, now = self.learner.updates, time.monotonic()
+    last_updates, last_time = self._last_updates
+    self._last_updates = (updates, now)
+    learned = max(self.steps - self.learning_starts, 1)
+    values = {
+      **getattr(self.learner, 'values', {}),
+      'robot/return': result.reward,
+      'robot/success': float(result.success),
+      'robot/faults': self.faults,
+      'robot/early_ends': self.early_ends,
+      'robot/resets': self.episodes,
+      'robot/updates_per_step': updates / learned,
+      'robot/updates_per_second': (updates - last_updates)
+      / max(now - last_time, 1e-9),
+      'robot/seconds': self.robot_seconds(),
+    }
+    for kind, value in zip(SAFETY_FIELDS, result.violations, strict=True):
+      values[f'robot/violations_{kind}'] = float(value)
+    if timing is not None:
+      values['robot/jitter_p50_ms'] = timing.jitter_p50 * 1e3
+      values['robot/jitter_p99_ms'] = timing.jitter_p99 * 1e3
+      values['robot/late_steps'] = timing.late_steps
+    since = getattr(self.learner, 'actor_since', 0.0)
+    if since:
+      values['robot/actor_age_s'] = now - since
+    self.telemetry.scalars(values, self.steps)
 
   def evaluate(self, policy: policies.NumpyPolicy) -> dict[str, Any]:
     """The evaluation metrics of `policy`, from episodes on the robot."""
@@ -469,7 +502,7 @@ def train_on_robot(
     updates_per_step=options.updates_per_step,
   )
   learner = learner_lib.Learner(setup)
-  actor = _RobotRun(config, options, output, metadata, learner, log)
+  actor = _RobotRun(config, options, output, metadata, learner, run)
   try:
     for batch in (data, recorded):
       if batch is not None:
@@ -487,8 +520,25 @@ def train_on_robot(
     try:
       actor.close()  # The robot first: torque off before anything else.
     finally:
-      learner.close()
+      try:
+        learner.close()
+      finally:
+        _finish(run, config, output)
   return run.history
+
+
+def _finish(run: train_lib.Run, config, output: pathlib.Path) -> None:
+  """Closes the run's TensorBoard file and draws its learning curve (also
+  after Ctrl-C or a fault that stopped it)."""
+  from robel_dm.learning import curves  # noqa: PLC0415
+
+  run.telemetry.close()
+  curves.plot_run(
+    run.log_path,
+    output / train_lib.CURVE,
+    f'{config.domain}/{config.task} ({config.algo}, seed {config.seed}) '
+    'on a robot',
+  )
 
 
 def _sizes(config, keys: tuple[str, ...]) -> tuple[int, int]:
@@ -519,8 +569,10 @@ def _actor_loop(config, options, run, actor, learner, metadata) -> None:
     row = run.record(policy, actor.steps, evaluator=actor.evaluate)
     return run.solved(row)
 
+  # The evaluation after the last one logged: one cut short by a kill (its
+  # steps recorded, its row not) is made again at once.
   next_eval = (
-    (actor.steps // config.eval_every + 1) * config.eval_every
+    (run.history[-1]['env_steps'] // config.eval_every + 1) * config.eval_every
     if run.history
     else 0
   )
@@ -555,10 +607,13 @@ def _evaluate_on_robot(config, options, output, run, policy, metadata, log):
     def wait_until_caught_up(self):
       pass
 
-  actor = _RobotRun(config, options, output, metadata, _NoLearner(), log)
+  actor = _RobotRun(config, options, output, metadata, _NoLearner(), run)
   try:
     actor.open(config.seed * 1000)
     run.start_clocks()
     run.record(policy, 0, evaluator=actor.evaluate, epoch=config.steps)
   finally:
-    actor.close()
+    try:
+      actor.close()
+    finally:
+      _finish(run, config, output)

@@ -12,6 +12,22 @@ every agent:
   speed/env_steps_per_second
   config                   the run's settings (text, once)
 
+and a run on a robot, at the end of every episode (x: robot steps):
+
+  train/<name>             the learner's latest values (as above)
+  robot/jitter_p50_ms, robot/jitter_p99_ms, robot/late_steps
+                           the episode's control timing
+  robot/violations_<kind>  the episode's safety violations
+  robot/return, robot/success
+                           the episode's (training and evaluation alike)
+  robot/faults, robot/early_ends, robot/resets
+                           so far in the run
+  robot/updates_per_step   the learner's updates per step since learning
+                           started
+  robot/updates_per_second since the previous episode
+  robot/actor_age_s        how old the actor weights acting were
+  robot/seconds            the robot's time so far
+
 Writing needs the `tensorboardX` package (in the `learn` extra); without it
 a run says so in one line and trains as before. Between evaluations a
 progress line is printed at most every `HEARTBEAT_SECONDS`, so a long
@@ -101,6 +117,15 @@ class Telemetry:
         f'{self._name}: {steps} of {self._budget} steps, {rate:.0f} steps/s, '
         f'about {left:.1f} min left'
       )
+
+  def scalars(self, values: dict[str, float], step: int) -> None:
+    """Scalars under the tags given (e.g. a robot run's `robot/...`), at
+    `step` env steps."""
+    if self._writer is None:
+      return
+    for tag, value in values.items():
+      self._writer.add_scalar(tag, value, step)
+    self._writer.flush()
 
   def close(self) -> None:
     if self._writer is not None:
