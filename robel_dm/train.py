@@ -104,8 +104,9 @@ def _define_flags() -> None:
   )
   flags.DEFINE_float(
     'updates_per_step',
-    1.0,
-    'With --device_path: gradient updates per robot step, at most.',
+    None,
+    'With --device_path: gradient updates per robot step, at most (default: '
+    "the agent's own, sac 1, droq 10).",
   )
   flags.DEFINE_bool(
     'wait_for_learner',

@@ -46,6 +46,7 @@ from robel_dm.hardware.tracking import tracker as tracking
 from robel_dm.learning import agents, demos, run_files
 from robel_dm.learning import learner as learner_lib
 from robel_dm.learning import train as train_lib
+from robel_dm.learning.robot_options import RobotRunOptions
 from robel_dm.tasks import base
 
 SAFETY_FIELDS = base.SAFETY_FIELDS
@@ -60,79 +61,7 @@ FAULTS = (
 )
 # Agents that can learn on a robot: off-policy ones learn while it moves;
 # behaviour cloning learns from data and is evaluated on it.
-ROBOT_AGENTS = ('sac', 'sac_demos', 'bc')
-# What --resume may change besides RunConfig's resumable fields.
-RESUMABLE_OPTIONS = ('device_path', 'hours', 'wait_for_learner')
-
-
-@dataclasses.dataclass(frozen=True)
-class RobotRunOptions:
-  """How a run uses its robot.
-
-  Attributes:
-    robot: the robot (`suite.RobotOptions`: its bus, configuration, reset,
-      guide motor, tracker spec).
-    dynamics: with device 'virtual', a calibration of the simulated robot.
-    hours: wall-clock budget of this session, h (None: `steps` only).
-    max_violations: an episode ends early once its safety violations
-      (position + velocity + current) reach this; None: never.
-    reset_attempts: failed resets in a row after which the run stops.
-    updates_per_step: gradient updates per recorded transition, at most.
-    wait_for_learner: after every step, the robot waits until the learner
-      has made the updates that step allows (`updates_per_step`), as a
-      learner keeping a real robot's pace would have. None: when the robot
-      runs in simulated time (device 'virtual'), where nothing else would
-      hold the robot back; a real robot keeps its control period.
-  """
-
-  robot: suite.RobotOptions
-  dynamics: str | None = None
-  hours: float | None = None
-  max_violations: int | None = None
-  reset_attempts: int = 3
-  updates_per_step: float = 1.0
-  wait_for_learner: bool | None = None
-
-  @property
-  def paced_by_learner(self) -> bool:
-    """Whether the robot waits for the learner after every step."""
-    if self.wait_for_learner is None:
-      return self.robot.device_path == 'virtual'
-    return self.wait_for_learner
-
-  def check(self) -> None:
-    """Raises ValueError naming the first bad option."""
-    if self.hours is not None and not self.hours > 0:
-      raise ValueError(f'hours must be > 0, got {self.hours}')
-    if self.max_violations is not None and self.max_violations < 1:
-      raise ValueError(
-        f'max_violations must be >= 1, got {self.max_violations}'
-      )
-    if self.reset_attempts < 1:
-      raise ValueError(
-        f'reset_attempts must be >= 1, got {self.reset_attempts}'
-      )
-    if not 0 < self.updates_per_step <= 64:
-      raise ValueError(
-        f'updates_per_step must be in (0, 64], got {self.updates_per_step}'
-      )
-
-  def to_json(self) -> dict[str, Any]:
-    """The options as one flat JSON object (saved beside the run)."""
-    fields = dataclasses.asdict(self)
-    del fields['robot']
-    return {**self.robot.to_json(), **fields}
-
-  def load(self, config: train_lib.RunConfig, seed: int):
-    """The task's environment on the robot."""
-    return suite.load(
-      config.domain,
-      config.task,
-      task_kwargs=config.task_kwargs,
-      seed=seed,
-      robot=self.robot,
-      dynamics=self.dynamics,
-    )
+ROBOT_AGENTS = ('sac', 'droq', 'sac_demos', 'bc')
 
 
 # --- The actor -------------------------------------------------------------
@@ -362,7 +291,9 @@ class _RobotRun:
     since = getattr(self.learner, 'actor_since', 0.0)
     if since:
       values['robot/actor_age_s'] = now - since
-    self.telemetry.scalars(values, self.steps)
+    # An episode too short to time (a fault at its first step) has none.
+    finite = {tag: v for tag, v in values.items() if np.isfinite(v)}
+    self.telemetry.scalars(finite, self.steps)
 
   def evaluate(self, policy: policies.NumpyPolicy) -> dict[str, Any]:
     """The evaluation metrics of `policy`, from episodes on the robot."""
@@ -381,25 +312,6 @@ class _RobotRun:
       'on_robot': True,
       'robot_seconds': self.robot_seconds(),
     }
-
-
-def _check_robot_resume(output: pathlib.Path, options: RobotRunOptions) -> None:
-  path = output / ROBOT
-  if not path.is_file():
-    raise ValueError(f'--resume: {path} is missing (not a run on a robot)')
-  saved = json.loads(path.read_text())
-  now = options.to_json()
-  differences = [
-    f'{name}: {saved.get(name)!r} (now {value!r})'
-    for name, value in now.items()
-    if name not in RESUMABLE_OPTIONS and saved.get(name) != value
-  ]
-  if differences:
-    raise ValueError(
-      f'--resume: {output} learned with other robot options (only '
-      '--device_path, --hours and --wait_for_learner may change): '
-      + '; '.join(differences)
-    )
 
 
 def _recorded(output: pathlib.Path, config, keys) -> demos.Transitions | None:
@@ -458,7 +370,7 @@ def train_on_robot(
   )
   if resume:
     train_lib.check_resume(output, config, need_checkpoint=False)
-    _check_robot_resume(output, options)
+    options.check_resume(output / ROBOT)
   data = train_lib.load_data(config, keys)
   recorded = _recorded(output, config, keys) if resume else None
   if overwrite:  # After every check: a refused run removes nothing.
@@ -499,7 +411,8 @@ def train_on_robot(
     buffer_size=2 * config.steps + held,
     checkpoint=str(output / train_lib.CHECKPOINT),
     resume=resume,
-    updates_per_step=options.updates_per_step,
+    updates_per_step=options.updates_per_step
+    or agents.updates_per_step(config.agent),
   )
   learner = learner_lib.Learner(setup)
   actor = _RobotRun(config, options, output, metadata, learner, run)
