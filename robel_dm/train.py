@@ -12,6 +12,7 @@ default). Needs the `learn` extra.
 """
 
 import os
+import signal
 import sys
 
 from absl import app, flags
@@ -197,12 +198,37 @@ def main(argv):
     print(f'error: {error}', file=sys.stderr)
     return 2
   except KeyboardInterrupt:
-    print(
-      'interrupted (torque off); --resume continues from the last save',
-      file=sys.stderr,
-    )
+    print(_stopped('Ctrl-C'), file=sys.stderr)
     return 130
+  except SystemExit as stop:
+    # An exit signal (SIGTERM, SIGHUP, SIGQUIT) released the robot and ends
+    # the program through SystemExit(128 + signal): say what stays.
+    if isinstance(stop.code, int) and stop.code - 128 in _EXIT_SIGNALS:
+      print(_stopped(_EXIT_SIGNALS[stop.code - 128]), file=sys.stderr)
+    raise
   return 0
+
+
+_EXIT_SIGNALS = {
+  int(signal.SIGTERM): 'SIGTERM',
+  int(signal.SIGHUP): 'SIGHUP',
+  int(signal.SIGQUIT): 'SIGQUIT',
+}
+
+
+def _stopped(cause: str) -> str:
+  """What a run stopped by `cause` kept, and how to go on."""
+  if FLAGS.device_path:
+    kept = (
+      'the robot is released (torque off); the networks are saved and '
+      'every robot step is in the recording'
+    )
+  else:
+    kept = "the networks of the last evaluation's checkpoint are kept"
+  return (
+    f'stopped by {cause}: {kept} in {FLAGS.output_dir}; the same command '
+    'with --resume continues'
+  )
 
 
 if __name__ == '__main__':

@@ -315,6 +315,35 @@ def test_an_evaluation_cut_short_is_made_again_on_resume(tmp_path, monkeypatch):
   assert [row['env_steps'] for row in history][:2] == [0, cut + 80]
 
 
+def test_sigterm_says_what_was_saved_and_how_to_resume(tmp_path):
+  root = pathlib.Path(__file__).resolve().parents[1]
+  output = tmp_path / 'run'
+  process = subprocess.Popen(
+    [sys.executable, '-m', 'robel_dm.train', '--domain=dclaw',
+     '--task=pose_fixed', '--device_path=virtual', '--steps=100000',
+     '--eval_every=100000', f'--output_dir={output}'],
+    cwd=root,
+    env={**os.environ, 'MUJOCO_GL': 'egl'},
+    stdout=subprocess.PIPE,
+    stderr=subprocess.PIPE,
+    preexec_fn=child_signals.default,
+    text=True,
+  )  # fmt: skip
+  try:
+    for line in process.stdout:  # Wait for a training episode.
+      if line.startswith('episode 2 '):
+        break
+    process.send_signal(signal.SIGTERM)
+    _, stderr = process.communicate(timeout=120)
+  finally:
+    if process.poll() is None:
+      process.kill()
+  assert process.returncode == 128 + signal.SIGTERM
+  assert 'stopped by SIGTERM: the robot is released (torque off)' in stderr
+  assert f'in {output}; the same command with --resume continues' in stderr
+  assert (output / train_lib.CHECKPOINT).is_file()
+
+
 def test_learning_starts_from_a_recording(tmp_path):
   # A recording made elsewhere (here: the reference controller, simulated).
   from robel_dm import evaluate  # noqa: PLC0415
