@@ -1,12 +1,13 @@
 """The evaluation command's results file: checked before, written atomically.
 
 `check_output` refuses, before anything moves, a --output that is not the
-path of a regular file (a directory, a symbolic link, a device, a fifo) or
-that cannot be written. `write_json` replaces the file in one step, so a
-failed write (a full disk) or an interruption leaves the previous complete
-file as it was.
+path of a regular file (a directory, a symbolic link, a device, a fifo),
+that cannot be written, or that is a file the run reads (the policy).
+`write_json` replaces the file in one step, so a failed write (a full disk)
+or an interruption leaves the previous complete file as it was.
 """
 
+from collections.abc import Iterable
 import contextlib
 import json
 import os
@@ -27,13 +28,21 @@ class OutputError(RuntimeError):
   """Writing the results failed after the run started (e.g. a full disk)."""
 
 
-def check_output(path: str | None) -> None:
+def check_output(
+  path: str | None, inputs: Iterable[tuple[str, str | None]] = ()
+) -> None:
   """Fails before the first episode if the results cannot be written.
+
+  Args:
+    path: the --output file (None or empty: no results file).
+    inputs: (flag, path) of every file the run reads, e.g. ('--policy',
+      'p.npz'); None paths are skipped.
 
   Raises:
     ValueError: in one line, if `path` is not a regular file's path (an
-      existing directory, symbolic link, device, fifo or socket) or its
-      folder is missing or not writable.
+      existing directory, symbolic link, device, fifo or socket), is one of
+      `inputs` (the results would replace it), or its folder is missing or
+      not writable.
   """
   if not path:
     return
@@ -43,6 +52,12 @@ def check_output(path: str | None) -> None:
     raise ValueError(
       f'--output: {path} is a symbolic link; give the path of a regular file'
     )
+  for flag, name in inputs:
+    if name and _same_file(path, name):
+      raise ValueError(
+        f'--output: {path} is the file of {flag}={name}; the results would '
+        'replace it: give another path'
+      )
   if os.path.exists(path):
     mode = os.stat(path).st_mode
     if not stat.S_ISREG(mode):
@@ -59,6 +74,15 @@ def check_output(path: str | None) -> None:
     os.path.exists(path) and not os.access(path, os.W_OK)
   ):
     raise ValueError(f'--output: cannot write {path}')
+
+
+def _same_file(path: str, other: str) -> bool:
+  """Whether two paths name one existing file (through links, or another
+  spelling)."""
+  try:
+    return os.path.samefile(path, other)
+  except (OSError, ValueError):  # Either is missing, or not a path.
+    return False
 
 
 def write_json(path: str, data) -> None:

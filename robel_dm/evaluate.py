@@ -10,6 +10,7 @@ episode and the control steps per second.
 """
 
 from collections.abc import Sequence
+import contextlib
 import math
 import os
 import sys
@@ -456,6 +457,25 @@ def _video_episodes(values: list[str] | None) -> list[int] | None:
   return indices
 
 
+def _read_files(tasks) -> list[tuple[str, str | None]]:
+  """(flag, path) of the files a run of `tasks` reads: --output must name
+  none of them."""
+  files = [
+    ('--dynamics', FLAGS.dynamics),
+    ('--robot_config', FLAGS.robot_config),
+  ]
+  policy = FLAGS.policy
+  if policy == policies.BASELINE:
+    for domain, task in tasks:
+      with contextlib.suppress(policies.PolicyError):  # Said later.
+        files.append(('--policy', str(policies.baseline_path(domain, task))))
+  elif policy not in policies.BUILT_IN and not policy.startswith(
+    policies.REPLAY
+  ):
+    files.append(('--policy', policy))
+  return files
+
+
 def _list_tasks() -> str:
   return '\n'.join(
     f'{domain:<7} {", ".join(tasks)}'
@@ -474,7 +494,7 @@ def main(argv):
     task_kwargs = task_args.parse_task_kwargs(FLAGS.task_kwargs)
     tasks = task_args.select_tasks(FLAGS.domain, FLAGS.task)
     video_episodes = _video_episodes(FLAGS.video_episodes)
-    cli_checks.check_output(FLAGS.output)
+    cli_checks.check_output(FLAGS.output, _read_files(tasks))
     if len(tasks) > 1:  # A sweep runs the tasks the policy can run.
       reasons = {
         t: task_args.unavailable(FLAGS.policy, *t, task_kwargs) for t in tasks

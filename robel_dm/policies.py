@@ -20,13 +20,11 @@ import json
 import pathlib
 import re
 from typing import Any
-import zipfile
-import zlib
 
 import dm_env
 import numpy as np
 
-from robel_dm import assets, registry, suite
+from robel_dm import assets, npz_files, registry, suite
 
 Policy = Callable[[dm_env.TimeStep], np.ndarray]
 
@@ -312,40 +310,20 @@ def _check_layers(weights: list[np.ndarray], biases: list[np.ndarray]) -> None:
       )
 
 
-# What a damaged archive can raise while numpy reads it.
-_READ_ERRORS = (
-  OSError,
-  EOFError,
-  ValueError,
-  KeyError,
-  NotImplementedError,
-  RuntimeError,  # An encrypted member.
-  zipfile.BadZipFile,
-  zlib.error,
-)
 _LAYER = re.compile(r'(weight|bias)_(0|[1-9][0-9]*)')
 _FIELDS = ('activation', 'output', 'metadata')
-
-
-def _one_line(error: BaseException) -> str:
-  """An error as one line: its type, then its message if it has one."""
-  message = ' '.join(str(error).split())
-  name = type(error).__name__
-  return f'{name}: {message}' if message else name
+# The most a policy's arrays may hold in all, checked from their headers
+# before any is read (the shipped policies hold less than 1 MiB).
+MAX_ARRAY_BYTES = 256 * 2**20
 
 
 def _read_arrays(path: pathlib.Path) -> dict[str, np.ndarray]:
-  """The arrays of a .npz file (raises `PolicyError` without the path)."""
-  if path.stat().st_size == 0:
-    raise PolicyError('the file is empty')
-  with open(path, 'rb') as file:  # Unreadable: OSError, named by `load`.
-    if not zipfile.is_zipfile(file):
-      raise PolicyError('not an .npz archive (truncated or another format)')
+  """The arrays of a .npz file (raises `PolicyError` without the path; an
+  unreadable file's OSError is named by `load`)."""
   try:
-    with np.load(path, allow_pickle=False) as data:
-      return {name: data[name] for name in data.files}
-  except _READ_ERRORS as error:
-    raise PolicyError(f'unreadable ({_one_line(error)})') from error
+    return npz_files.read_arrays(path, MAX_ARRAY_BYTES)
+  except npz_files.ArchiveError as error:
+    raise PolicyError(str(error)) from error
 
 
 def _from_arrays(arrays: dict[str, np.ndarray]) -> NumpyPolicy:
@@ -488,7 +466,7 @@ def check_file(
     return None
   path = baseline_path(domain, task) if name == BASELINE else pathlib.Path(name)
   if path.suffix != '.npz':
-    raise _unknown_policy(name)
+    raise _unknown_policy(name, domain, task)
   if not path.is_file():
     raise PolicyError(f'no policy file {path}')
   policy = load(path, any_variant)
@@ -503,11 +481,16 @@ def check_file(
   return policy
 
 
-def _unknown_policy(name: str) -> ValueError:
-  if name.endswith('.zip'):
+def _unknown_policy(
+  name: str, domain: str | None = None, task: str | None = None
+) -> ValueError:
+  if name.endswith('.zip'):  # A Stable-Baselines3 model or checkpoint.
     return ValueError(
-      f'{name} is a training checkpoint (what --resume reads): evaluate the '
-      'policy.npz that train writes beside it'
+      f'{name} is a Stable-Baselines3 .zip: convert it to a policy.npz first '
+      f'with python -m robel_dm.learning.convert --model={name} --algo=ALGO '
+      f'--domain={domain or "D"} --task={task or "T"} --output=policy.npz, '
+      'ALGO being sac, tqc or ppo (train writes a policy.npz beside its '
+      'checkpoint.zip)'
     )
   return ValueError(
     f'unknown policy {name!r}; expected one of {BUILT_IN + (BASELINE,)} or '
@@ -595,4 +578,4 @@ def make_policy(
       int(np.prod(spec.shape)),
     )
     return policy
-  raise _unknown_policy(name)
+  raise _unknown_policy(name, domain, task)

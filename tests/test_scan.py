@@ -155,6 +155,36 @@ def test_no_motor_at_all_suggests_baud_and_all_ids():
   assert '--all_ids' in output
 
 
+def test_wrong_baud_without_expectations_fails_naming_what_was_tried():
+  # Nothing expected: every ID is pinged, and finding none is no success.
+  with _serve() as (_, device):
+    code, output = _run(device, robot_config=None, baud_rate=57_600)
+    result = _main(f'--device={device}', '--baud=57600')
+  assert code == 1, output
+  assert 'PROBLEMS: 0 motor(s) found' in output
+  assert 'no motor answered at 57,600 bps (tried every ID 0-252)' in output
+  assert '--baud=RATE, one of 9600, 115200, 1000000,' in output
+  assert result.returncode == 1, result.stdout + result.stderr
+  assert 'tried every ID 0-252' in result.stdout
+
+
+def test_wrong_baud_with_a_configuration_names_the_ids_tried():
+  with _serve() as (_, device):
+    code, output = _run(device, baud_rate=57_600)
+  assert code == 1
+  assert 'tried ID(s) 10-12, 20-22, 30-32, 50, 60' in output
+  assert '--all_ids' in output
+  assert '(57600: new motors)' not in output  # It was the rate tried.
+
+
+def test_empty_bus_at_robel_rate_points_to_the_factory_rate():
+  with _serve([]) as (_, device):
+    code, output = _run(device, robot_config=None)
+  assert code == 1
+  assert 'one of 9600, 57600, 115200, 2000000' in output
+  assert '(57600: new motors)' in output
+
+
 def test_wrong_operating_mode_is_flagged():
   with _serve() as (bus, device):
     bus.servo(11).set(table.OPERATING_MODE, 1)

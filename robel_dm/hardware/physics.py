@@ -11,6 +11,9 @@ An error during a step or a reset releases the motors, and the physics then
 refuses to step until a reset has brought the robot back: the reset checks
 that every motor answers again and takes its goals (see
 `realize_initial_state`), then runs the reset procedure as usual.
+
+Once freed (`env.close()`), the physics raises `PhysicsClosedError` on any
+use of its model or data (rendering, stepping, reading it).
 """
 
 import contextlib
@@ -32,8 +35,36 @@ from robel_dm.hardware.dynamixel import control_table as table
 _OVERRUN_LOG_INTERVAL = 1.0
 
 
+class PhysicsClosedError(RuntimeError, ReferenceError):
+  """The physics was freed (its environment closed). A ReferenceError too,
+  as dm_control raises for a freed simulated physics."""
+
+
 class HardwarePhysics(mjcf.Physics):
   """mjcf.Physics driven by real (or virtual) motors. Call `attach` first."""
+
+  _freed = False
+
+  def free(self) -> None:
+    super().free()
+    self._freed = True
+
+  def _check_open(self) -> None:
+    if self._freed:
+      raise PhysicsClosedError(
+        'the environment is closed, its physics freed; load a new one to '
+        'continue'
+      )
+
+  @property
+  def model(self):
+    self._check_open()
+    return super().model
+
+  @property
+  def data(self):
+    self._check_open()
+    return super().data
 
   def attach(
     self,
@@ -121,6 +152,7 @@ class HardwarePhysics(mjcf.Physics):
 
   def step(self, nstep: int = 1) -> None:
     """Exchanges with the motors once per control step (its last substep)."""
+    self._check_open()
     if self._resetting:
       return
     self._pending_substeps += nstep

@@ -6,7 +6,11 @@ prints the device path of a pseudo-terminal on which a virtual servo bus
 serves every motor of the robot's shipped configuration (or of `--config`),
 then serves it until SIGINT or SIGTERM. `--driver=sim` (the default) moves
 the motors with a MuJoCo simulation of the robot in real time;
-`--driver=ideal` puts every motor at its goal at once.
+`--driver=ideal` puts every motor at its goal at once. The bus publishes
+on its pty how much it has answered, so that a robel_dm client (any
+`DynamixelClient`) waits for it while a busy machine holds it up, and calls
+a motor silent only once it has answered; another client (the bare SDK)
+has the SDK's ~34 ms reply deadline, which a loaded machine can miss.
 
 `build_bus` assembles such a bus from a configuration and the name of a
 driver (`DRIVERS`).

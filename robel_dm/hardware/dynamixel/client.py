@@ -24,8 +24,11 @@ control step's, and once the client is closed every transaction raises.
 """
 
 from collections.abc import Callable
+import fcntl
 import logging
+import select
 import struct
+import termios
 import threading
 
 import numpy as np
@@ -35,7 +38,7 @@ from robel_dm.hardware.dynamixel import control_table as table
 from robel_dm.hardware.dynamixel import port as port_lib
 
 # Re-exported: callers catch `dynamixel.DynamixelError` and its subclasses.
-from robel_dm.hardware.dynamixel import register_access
+from robel_dm.hardware.dynamixel import protocol, register_access
 from robel_dm.hardware.dynamixel.errors import (  # noqa: F401
   DynamixelError,
   MissingMotorError,
@@ -57,6 +60,16 @@ _STATE_FORMAT = struct.Struct('<i6xhii')
 # A goal write found missing is sent again (and read back) this often; still
 # missing then, it is an error.
 _GOAL_RESENDS = 1
+
+
+def _published_progress(fd: int) -> int | None:
+  """The bytes a virtual bus on this pseudo-terminal has answered, all
+  told, as it publishes them; None for any other port."""
+  try:
+    winsize = fcntl.ioctl(fd, termios.TIOCGWINSZ, bytes(8))
+  except OSError:
+    return None
+  return protocol.decode_progress(winsize)
 
 
 def _require_sdk():
@@ -89,12 +102,14 @@ class DynamixelClient(register_access.RegisterAccess):
       baud_rate: bits per second (1 Mbps default; up to 4.5 Mbps).
       retries: how often a failed transaction is repeated before giving up.
       bus_progress: for a simulated bus only: how many bytes sent to it it
-        has answered and how many it has sent, all told. A reply is then
-        waited for while the bus has a request unanswered or a reply
-        unread (a busy machine delays a simulated bus's replies, never a
-        motor's), and only a reply the bus did not send times out, after
-        the SDK's usual deadline. None (a real bus): every reply is due
-        within that deadline.
+        has answered and how many it has sent, all told (only the first
+        count is used). A reply is then waited for while the bus has a
+        request unanswered or a reply unread (a busy machine delays a
+        simulated bus's replies, never a motor's), and only a reply the bus
+        did not send times out, after the SDK's usual deadline. None: the
+        same if the port is a virtual bus's pseudo-terminal (it publishes
+        its count there, for a client in any process); for a real bus
+        every reply is due within that deadline.
 
     Raises:
       ValueError: for repeated or out-of-range IDs, or a bad baud rate.
@@ -169,14 +184,6 @@ class DynamixelClient(register_access.RegisterAccess):
     if shutdown.exit_signal() is not None:
       raise self._not_connected()
     port = port_lib.port_handler_class()(self._device_path)
-    if self._bus_progress is not None:
-      progress, (answered, sent) = self._bus_progress, self._bus_progress()
-
-      def since_connect() -> tuple[int, int]:
-        now_answered, now_sent = progress()
-        return now_answered - answered, now_sent - sent
-
-      port.progress = since_connect
     try:
       opened = port.openPort()
     except Exception as error:  # pyserial raises SerialException/OSError.
@@ -190,6 +197,7 @@ class DynamixelClient(register_access.RegisterAccess):
       )
     try:
       port_lib.lock_exclusively(port.ser.fileno(), self._device_path)
+      self._follow_bus_progress(port)
     except BaseException:
       port.closePort()
       raise
@@ -201,19 +209,15 @@ class DynamixelClient(register_access.RegisterAccess):
     if self._probing:
       return
     try:
-      missing = []
+      failed = {}  # Motor ID -> (result, bad reply) of its last ping.
       for motor_id in self._ids:
-        model = self._ping(motor_id)
+        model, result = self._ping_result(motor_id)
         if model is None:
-          missing.append(motor_id)
+          failed[motor_id] = result, self._packets.bad_reply
         else:
           self._models[motor_id] = model
-      if missing:
-        raise MissingMotorError(
-          f'motors {missing} do not answer on {self._device_path}; check '
-          'wiring, power, IDs and baud rate',
-          missing,
-        )
+      if failed:
+        raise MissingMotorError(self._connect_failure(failed), failed)
       unknown = {i: m for i, m in self._models.items() if m not in table.MODELS}
       if unknown:
         raise DynamixelError(
@@ -241,6 +245,37 @@ class DynamixelClient(register_access.RegisterAccess):
     except BaseException:
       self._close_port()
       raise
+
+  def _follow_bus_progress(self, port) -> None:
+    """Makes the port wait for a virtual bus that is behind: its count of
+    bytes answered comes from `bus_progress`, or from the bus's pty."""
+    if self._bus_progress is not None:
+      progress = self._bus_progress
+
+      def answered() -> int | None:
+        return progress()[0]
+
+    else:
+      fd = port.ser.fileno()
+
+      def answered() -> int | None:
+        return _published_progress(fd)
+
+    baseline = answered()
+    if baseline is None:
+      return  # A real bus.
+
+    def since_connect() -> tuple[int, int]:
+      count = answered()
+      if count is None:  # The bus is gone: nothing more comes.
+        return port.written, port.read
+      # A reply is unread while the port has bytes to read (a pty hands
+      # what was written to the next select), not while the bus has sent
+      # more than was read: the SDK clears the port before every packet.
+      unread = select.select([port.ser], [], [], 0)[0]
+      return count - baseline, port.read + len(unread)
+
+    port.progress = since_connect
 
   def disconnect(self) -> None:
     """Turns every motor's torque off (best effort) and closes the port.
@@ -379,18 +414,17 @@ class DynamixelClient(register_access.RegisterAccess):
       attempts: how often to try; 1 + the client's retries by default.
 
     Raises:
-      MissingMotorError: if it does not answer.
+      MissingMotorError: if it gives no valid reply: none, or (the message
+        says so) a corrupted one or one of the wrong length.
     """
     self._check_connected()
-    model = self._ping(motor_id, attempts)
+    model, result = self._ping_result(motor_id, attempts)
     if model is None:
+      how = self._ping_failure(result, self._packets.bad_reply)
       raise MissingMotorError(
-        f'motor {motor_id} does not answer on {self._device_path}', [motor_id]
+        f'motor {motor_id} {how} on {self._device_path}', [motor_id]
       )
     return model
-
-  def _ping(self, motor_id: int, attempts: int | None = None) -> int | None:
-    return self._ping_result(motor_id, attempts)[0]
 
   def _ping_result(
     self, motor_id: int, attempts: int | None = None
@@ -402,9 +436,6 @@ class DynamixelClient(register_access.RegisterAccess):
       if result == sdk.COMM_SUCCESS:
         return model, result
     return None, result
-
-  def _silent_motors(self, motor_ids) -> list[int]:
-    return [i for i in motor_ids if self._ping(i) is None]
 
   def read_state(self) -> np.ndarray:
     """Reads current (mA), velocity (rad/s) and position (rad) of all motors.
@@ -420,24 +451,32 @@ class DynamixelClient(register_access.RegisterAccess):
     Raises:
       MissingMotorError: naming the motors that stopped answering, or the
         whole bus if none answers.
-      DynamixelError: naming the motors whose replies are corrupted, or
-        whose goal writes keep getting lost.
+      DynamixelError: naming the motors whose replies are corrupted or of
+        the wrong length, or whose goal writes keep getting lost; or the
+        whole bus if it stalled (no reply to the read, yet every motor
+        answers a ping right after).
     """
     self._check_motors_checked()
     reader = self._state_reader
-    failures = []  # (first motor without a valid reply, SDK result).
+    # (first motor without a valid reply, SDK result, the handler's
+    # `bad_reply` for a reply of the wrong length).
+    failures = []
     for _ in range(self._retries + 1):
       result = self._call(lambda port: reader.txRxPacket())
       short = self._first_unread(reader)
       if result == sdk.COMM_SUCCESS and short is None:
         break
-      if result in (sdk.COMM_SUCCESS, register_access.COMM_WRONG_LENGTH):
+      bad_reply = None
+      if result == register_access.COMM_WRONG_LENGTH:
         # A well-formed reply of another length: a late reply to an earlier
         # packet (a ping that timed out) was taken for this motor's. Drop
         # whatever else is waiting and read again.
+        bad_reply = self._packets.bad_reply
+        self._call(lambda port: port.clearPort())
+      elif result == sdk.COMM_SUCCESS:  # A reply missing, yet no error.
         result = sdk.COMM_RX_CORRUPT
         self._call(lambda port: port.clearPort())
-      failures.append((short, result))
+      failures.append((short, result, bad_reply))
     else:
       raise self._read_failure(failures)
     # Every motor answered: a bus once found silent is back, and releases
@@ -464,50 +503,6 @@ class DynamixelClient(register_access.RegisterAccess):
       if len(reader.data_dict.get(motor_id) or ()) != table.STATE_BLOCK_SIZE:
         return motor_id
     return None
-
-  def _read_failure(self, failures) -> DynamixelError:
-    """The error that names who failed a state read, and how."""
-    path = self._device_path
-    corrupted = sorted(
-      {i for i, result in failures if result == sdk.COMM_RX_CORRUPT}
-    )
-    if len(corrupted) == 1 and all(
-      result == sdk.COMM_RX_CORRUPT for _, result in failures
-    ):
-      return DynamixelError(
-        f'motor {corrupted[0]} answered with corrupted replies (bad '
-        f'checksum) {len(failures)} times in a row on {path}: check its '
-        'cable and connectors',
-        corrupted,
-      )
-    # One ping each, no retry: a silent bus is recognized in well under 1 s.
-    silent, garbled = [], []
-    for motor_id in self._ids:
-      model, result = self._ping_result(motor_id, attempts=1)
-      if model is None:
-        (garbled if result == sdk.COMM_RX_CORRUPT else silent).append(motor_id)
-    if len(silent) == len(self._ids):
-      self._bus_silent = True
-      return MissingMotorError(
-        f'no motor answers on {path}: check power and cable', silent
-      )
-    if silent:
-      return MissingMotorError(
-        f'motors {silent} stopped answering on {path}', silent
-      )
-    corrupted = sorted(set(corrupted) | set(garbled))
-    if corrupted:
-      return DynamixelError(
-        f'motors {corrupted} answered with corrupted replies (bad checksum) '
-        f'on {path}: check their cables and connectors',
-        corrupted,
-      )
-    result = failures[-1][1]
-    return DynamixelError(
-      f'reading motors {list(self._ids)} on {path} failed: '
-      f'{self._packets.getTxRxResult(result)}',
-      self._ids,
-    )
 
   def _confirm_goals(self, goals: np.ndarray) -> None:
     """Checks that the motors hold the goals last sent; re-sends lost ones

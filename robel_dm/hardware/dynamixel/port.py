@@ -3,26 +3,29 @@
 Two programs (or two environments in one program) talking to the same bus
 would interleave their packets, and both would read numbers that look right
 and are not. A `DynamixelClient` therefore takes an exclusive lock on its
-port when it opens it (`flock`, which a second opener in this or another
-process cannot take) and names the holder when the lock is taken. A port
-that vanishes (USB adapter unplugged, bus process killed) makes pyserial
-and termios raise their own errors; `port_errors` turns them into
+port (`flock`, which a second opener in this or another process cannot
+take) right after opening it and before changing anything: a refused
+opener neither configures the port (its line speed is the holder's too)
+nor flushes it (the holder's pending reply), and is told who holds it. A
+port that vanishes (USB adapter unplugged, bus process killed) makes
+pyserial and termios raise their own errors; `port_errors` turns them into
 `PortError`s naming the port. `port_handler_class` is the SDK's port as
 the client opens it.
 """
 
 from collections.abc import Callable, Iterator
 import contextlib
+import errno
 import fcntl
 import os
 import termios
-
-import serial
+from typing import NoReturn
 
 from robel_dm.hardware.dynamixel.errors import DynamixelError
 
-# What the OS and pyserial raise when a port fails.
-OS_ERRORS = (OSError, termios.error, serial.SerialException)
+# What the OS and pyserial raise when a port fails (pyserial's
+# SerialException is an OSError).
+OS_ERRORS = (OSError, termios.error)
 
 
 class PortBusyError(DynamixelError):
@@ -46,7 +49,7 @@ def port_errors(device_path: str, doing: str) -> Iterator[None]:
 
 
 def lock_exclusively(fd: int, device_path: str) -> None:
-  """Takes the exclusive lock of an open port.
+  """Takes the exclusive lock of an open port (again, if already held).
 
   Raises:
     PortBusyError: naming the port and, where the OS tells, the holder.
@@ -54,18 +57,21 @@ def lock_exclusively(fd: int, device_path: str) -> None:
   try:
     fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
   except BlockingIOError:
-    holders = _holders(device_path, own_fd=fd)
-    held_by = f' (held by {", ".join(holders)})' if holders else ''
-    raise PortBusyError(
-      f'{device_path} is already in use{held_by}: only one program, and one '
-      'environment in it, may drive a bus; close the other first'
-    ) from None
+    raise _busy(device_path) from None
 
 
-def _holders(device_path: str, own_fd: int) -> list[str]:
+def _busy(device_path: str) -> PortBusyError:
+  holders = _holders(device_path)
+  held_by = f' (held by {", ".join(holders)})' if holders else ''
+  return PortBusyError(
+    f'{device_path} is already in use{held_by}: only one program, and one '
+    'environment in it, may drive a bus; close the other first'
+  )
+
+
+def _holders(device_path: str) -> list[str]:
   """'pid N (command)' of the processes holding the port's lock, from
   /proc/locks (Linux); empty where the OS does not tell."""
-  del own_fd
   try:
     stat = os.stat(device_path)
     with open('/proc/locks') as locks:
@@ -97,6 +103,63 @@ def _describe(pid: int, own_pid: int) -> str:
   return f'pid {pid}' + (f' ({command[:80]})' if command else '')
 
 
+def _serial():
+  """pyserial (from the optional `hardware` extra, as dynamixel_sdk)."""
+  try:
+    import serial  # noqa: PLC0415
+  except ImportError as error:
+    raise ImportError(
+      f'the serial port needs pyserial ({error}): '
+      'pip install "robel_dm[hardware]"'
+    ) from error
+  return serial
+
+
+class _RefusedPort:
+  """The serial port of a `PortHandler` whose port another client holds.
+
+  Nothing of the port was changed, and it is closed again. Every use raises
+  the refusal; the client's first use is taking the port's lock
+  (`lock_exclusively(port.ser.fileno(), ...)` after `openPort`).
+  """
+
+  def __init__(self, device_path: str):
+    self._message = str(_busy(device_path))
+
+  def refuse(self, *args) -> NoReturn:
+    del args
+    raise PortBusyError(self._message)
+
+  fileno = read = write = reset_input_buffer = refuse
+
+  @property
+  def in_waiting(self) -> NoReturn:
+    self.refuse()
+
+  def close(self) -> None:
+    pass  # Closed already.
+
+
+def _open_locked(device_path: str, baud_rate: int):
+  """The port as a pyserial `Serial`, opened and locked, then configured
+  and flushed; a `_RefusedPort` if another client holds it."""
+  serial = _serial()
+  try:
+    # exclusive: pyserial takes the lock right after opening the device,
+    # before it sets the line (speed, DTR and RTS) or flushes it.
+    return serial.Serial(
+      port=device_path,
+      baudrate=baud_rate,
+      bytesize=serial.EIGHTBITS,
+      timeout=0,
+      exclusive=True,
+    )
+  except serial.SerialException as error:
+    if error.errno != errno.EWOULDBLOCK:
+      raise
+  return _RefusedPort(device_path)
+
+
 # How long a reply from a bus that is behind (see `DynamixelClient`'s
 # `bus_progress`) is waited for, seconds: a hang guard for a bus whose
 # thread stopped.
@@ -104,10 +167,11 @@ _BEHIND_BUS_LIMIT_S = 10.0
 
 
 def port_handler_class():
-  """The SDK's PortHandler, extended with 4.5 Mbps (missing from its list)
-  and, for a bus that reports its progress, replies that come late because
-  the machine is busy. Only the client calls it, once it has checked that
-  the SDK is installed."""
+  """The SDK's PortHandler, opening its port locked (see `_open_locked`),
+  extended with 4.5 Mbps (missing from its list) and, for a bus that
+  reports its progress, replies that come late because the machine is busy.
+  Only the client calls it, once it has checked that the SDK is installed.
+  """
   import dynamixel_sdk as sdk  # noqa: PLC0415 (the optional hardware extra)
 
   class PortHandler(sdk.PortHandler):
@@ -122,6 +186,23 @@ def port_handler_class():
       if baudrate == 4_500_000:
         return baudrate
       return super().getCFlagBaud(baudrate)
+
+    def setupPort(self, cflag_baud):  # noqa: N802 (SDK method name)
+      # The SDK's closes and reopens a port to change its speed, dropping
+      # the lock for a moment: the port is opened once, then reconfigured.
+      del cflag_baud  # The SDK's own setup, too, uses self.baudrate.
+      if isinstance(self.ser, _RefusedPort):
+        return True  # The client's lock_exclusively raises the refusal.
+      if self.is_open:
+        self.ser.baudrate = self.baudrate
+      else:
+        self.ser = _open_locked(self.port_name, self.baudrate)
+        if isinstance(self.ser, _RefusedPort):
+          return True
+        self.is_open = True
+      self.ser.reset_input_buffer()
+      self.tx_time_per_byte = (1000.0 / self.baudrate) * 10.0
+      return True
 
     def writePort(self, packet):  # noqa: N802 (SDK method name)
       written = super().writePort(packet)

@@ -15,11 +15,15 @@ a packet.
 Fast Sync/Bulk Read replies (0x8A/0x9A) are one status packet from ID 0xFE
 made of per-device blocks [ERR, ID, data, CRC]; each block's CRC is the
 running CRC of the packet so far, and these packets are never stuffed.
+
+`encode_progress` and `decode_progress` are how a virtual bus on a
+pseudo-terminal tells its clients how far it has got.
 """
 
 from collections.abc import Iterable, Sequence
 import dataclasses
 import enum
+import struct
 
 HEADER = b'\xff\xff\xfd\x00'
 _HEADER_PREFIX = b'\xff\xff\xfd'
@@ -373,3 +377,31 @@ class PacketParser:
 def parse(data: bytes | bytearray) -> list[Packet]:
   """All complete packets in `data` (a convenience for one-shot parsing)."""
   return PacketParser().feed(data)
+
+
+# --- A virtual bus's progress, on its pseudo-terminal -------------------------
+
+# A virtual bus served on a pseudo-terminal (`virtual.transport`) keeps the
+# count of bytes sent to it that it has answered in the pty's window size,
+# which means nothing on a serial line: a client in any process reads it at
+# its end (TIOCGWINSZ) and so tells a bus that a busy machine holds up from
+# a silent motor. Its four 16-bit fields hold the count's low 48 bits, low
+# word first, then this mark.
+PROGRESS_MARK = 0x5242
+_WINSIZE = struct.Struct('=4H')  # struct winsize: rows, columns, x, y.
+
+
+def encode_progress(answered: int) -> bytes:
+  """The window size (struct winsize) that publishes `answered` bytes."""
+  count = answered & 0xFFFF_FFFF_FFFF
+  return _WINSIZE.pack(
+    count & 0xFFFF, count >> 16 & 0xFFFF, count >> 32, PROGRESS_MARK
+  )
+
+
+def decode_progress(winsize: bytes) -> int | None:
+  """The count a window size publishes; None if it publishes none."""
+  low, middle, high, mark = _WINSIZE.unpack(winsize)
+  if mark != PROGRESS_MARK:
+    return None
+  return low | middle << 16 | high << 32

@@ -10,6 +10,11 @@ reply to an earlier packet, which the SDK would take for the current one's
 and decode into wrong numbers (or fail on with an IndexError), is dropped
 with whatever else waits in the port, and the read is made again; a motor
 that keeps answering so is named in a `DynamixelError`.
+
+A failed ping or state read of the client is explained here as well: a
+motor that sends no reply, a corrupted one, or one of the wrong length is
+named as such, and a state read that got no reply at all while every motor
+answers a ping right after is a stall of the whole bus, not a motor's fault.
 """
 
 import time
@@ -122,7 +127,8 @@ class RegisterAccess:
 
   Relies on the client's connection: `_call`, `_packets` (a
   `packet_handler`), `_port`, `_ids`, `_retries`, `_device_path`,
-  `_register_readers`, `_check_connected` and `_silent_motors`.
+  `_register_readers`, `_check_connected`, `_ping_result` and
+  `_bus_silent`.
   """
 
   def broadcast_ping(self) -> dict[int, tuple[int, int]]:
@@ -380,3 +386,144 @@ class RegisterAccess:
         'needs a reboot (power cycle or Reboot instruction)',
         errors,
       )
+
+  # --- What a failed read means ----------------------------------------------
+
+  @staticmethod
+  def _is_silent(result: int) -> bool:
+    """Whether an SDK result means that no reply came (not a bad one)."""
+    return result not in (sdk.COMM_RX_CORRUPT, COMM_WRONG_LENGTH)
+
+  @staticmethod
+  def _ping_failure(result: int, bad_reply: tuple | None) -> str:
+    """How a ping without a valid reply failed, to follow 'motor N': from
+    its SDK result and the packet handler's `bad_reply`."""
+    if result == COMM_WRONG_LENGTH:
+      _, received, expected = bad_reply
+      return (
+        f'answered a ping with {received} bytes instead of {expected} (a late '
+        'reply to an earlier packet?)'
+      )
+    if result == sdk.COMM_RX_CORRUPT:
+      return 'answered a ping with a corrupted reply (bad checksum)'
+    return 'does not answer'
+
+  def _connect_failure(self, failed: dict[int, tuple]) -> str:
+    """The message of `connect` for the motors that failed their pings
+    (motor ID -> (result, bad reply), as `_failed_pings` gives)."""
+    path = self._device_path
+    silent = [i for i, (result, _) in failed.items() if self._is_silent(result)]
+    if len(silent) == len(failed):
+      return (
+        f'motors {silent} do not answer on {path}; check wiring, power, IDs '
+        'and baud rate'
+      )
+    return f'no valid reply to a ping on {path}: ' + '; '.join(
+      f'motor {motor_id} {self._ping_failure(*failure)}'
+      for motor_id, failure in failed.items()
+    )
+
+  def _silent_motors(self, motor_ids) -> list[int]:
+    """The motors of `motor_ids` that send no reply to a ping (a motor
+    that sends a bad one is not silent)."""
+    silent = []
+    for motor_id in motor_ids:
+      model, result = self._ping_result(motor_id)
+      if model is None and self._is_silent(result):
+        silent.append(motor_id)
+    return silent
+
+  def _read_failure(self, failures) -> DynamixelError:
+    """The error that names who failed a state read, and how."""
+    path = self._device_path
+    results = {result for _, result, _ in failures}
+    wrong = {bad[0] for _, _, bad in failures if bad}
+    if results == {COMM_WRONG_LENGTH} and len(wrong) == 1:
+      motor_id, received, expected = failures[-1][2]
+      return DynamixelError(
+        f'motor {motor_id} answered the state read on {path} with {received} '
+        f'bytes instead of {expected}, {len(failures)} times in a row, the '
+        'port drained each time (late replies to earlier packets?)',
+        [motor_id],
+      )
+    corrupted = sorted(
+      {i for i, result, _ in failures if result == sdk.COMM_RX_CORRUPT}
+    )
+    if len(corrupted) == 1 and results == {sdk.COMM_RX_CORRUPT}:
+      return DynamixelError(
+        f'motor {corrupted[0]} answered with corrupted replies (bad '
+        f'checksum) {len(failures)} times in a row on {path}: check its '
+        'cable and connectors',
+        corrupted,
+      )
+    # One ping each, no retry: a silent bus is recognized in well under 1 s.
+    failed = self._failed_pings(self._ids)
+    if len(failed) == len(self._ids) and all(
+      self._is_silent(result) for result, _ in failed.values()
+    ):
+      self._bus_silent = True
+      return MissingMotorError(
+        f'no motor answers on {path}: check power and cable', list(failed)
+      )
+    # The read timed out before its first reply every time: if the motors
+    # that missed a ping answer a second, the whole bus was late.
+    nothing = all(
+      result == sdk.COMM_RX_TIMEOUT and short == self._ids[0]
+      for short, result, _ in failures
+    )
+    if nothing and failed:
+      failed = self._failed_pings(failed)
+    if nothing and not failed:
+      return DynamixelError(
+        f'no motor answered the state read on {path}, {len(failures)} times '
+        'in a row, yet every motor answered a ping right after: the whole '
+        'bus stalled (replies late past the deadline: a busy computer, or a '
+        'slow USB adapter), not one motor',
+        self._ids,
+      )
+    return self._ping_failures(failures, failed, corrupted)
+
+  def _failed_pings(self, motor_ids) -> dict[int, tuple]:
+    """Motor ID -> (SDK result, the handler's `bad_reply`) of the motors
+    of `motor_ids` that gave no valid reply to one ping each."""
+    failed = {}
+    for motor_id in motor_ids:
+      model, result = self._ping_result(motor_id, attempts=1)
+      if model is None:
+        failed[motor_id] = result, self._packets.bad_reply
+    return failed
+
+  def _ping_failures(self, failures, failed, corrupted) -> DynamixelError:
+    """The error of a failed state read after the motors were pinged:
+    `failed` as `_failed_pings` gives; `corrupted` lists the motors whose
+    state replies were corrupted."""
+    path = self._device_path
+    silent = [i for i, (result, _) in failed.items() if self._is_silent(result)]
+    if silent:
+      return MissingMotorError(
+        f'motors {silent} stopped answering on {path}', silent
+      )
+    garbled = [
+      i for i, (result, _) in failed.items() if result == sdk.COMM_RX_CORRUPT
+    ]
+    corrupted = sorted(set(corrupted) | set(garbled))
+    if corrupted:
+      return DynamixelError(
+        f'motors {corrupted} answered with corrupted replies (bad checksum) '
+        f'on {path}: check their cables and connectors',
+        corrupted,
+      )
+    if failed:
+      return DynamixelError(
+        f'reading the motors on {path} failed: '
+        + '; '.join(
+          f'motor {i} {self._ping_failure(*f)}' for i, f in failed.items()
+        ),
+        list(failed),
+      )
+    result = failures[-1][1]
+    return DynamixelError(
+      f'reading motors {list(self._ids)} on {path} failed: '
+      f'{self._packets.getTxRxResult(result)}',
+      self._ids,
+    )

@@ -1,11 +1,11 @@
 """What is wrong with a scanned bus, for ROBEL.
 
-`problems` turns the scan's `MotorReport`s into `Problem`s: missing or
-unexpected motors, unknown models, modes other than position control,
-return delays that cost bus time, a status return level below 2, a baud
-register that differs from the bus, narrowed position limits and latched
-hardware errors. ERROR problems decide the command's exit status; WARNING
-ones are reported only.
+`problems` turns the scan's `MotorReport`s into `Problem`s: a bus where no
+motor answers, missing or unexpected motors, unknown models, modes other
+than position control, return delays that cost bus time, a status return
+level below 2, a baud register that differs from the bus, narrowed position
+limits and latched hardware errors. ERROR problems decide the command's exit
+status; WARNING ones are reported only.
 """
 
 from collections.abc import Iterable, Sequence
@@ -13,7 +13,7 @@ import dataclasses
 
 from robel_dm.hardware import config as config_lib
 from robel_dm.hardware.dynamixel import control_table as table
-from robel_dm.hardware.scan.probe import MotorReport
+from robel_dm.hardware.scan.probe import MAX_ID, MotorReport
 
 _FULL_POSITION_RANGE = (0, 4_095)
 
@@ -212,11 +212,41 @@ def _motor_problems(report, robot_config, baud_rate) -> list[Problem]:
   return found
 
 
+def _format_ids(ids: Iterable[int]) -> str:
+  """'10-12, 20, 50': sorted IDs, runs of consecutive ones as ranges."""
+  runs: list[list[int]] = []
+  for motor_id in sorted(set(ids)):
+    if runs and motor_id == runs[-1][1] + 1:
+      runs[-1][1] = motor_id
+    else:
+      runs.append([motor_id, motor_id])
+  return ', '.join(
+    str(first) if first == last else f'{first}-{last}' for first, last in runs
+  )
+
+
+def _no_motors(expected: Sequence[int], baud_rate: int, all_ids: bool) -> str:
+  """What a scan that found no motor tried, and how to try otherwise."""
+  if all_ids or not expected:
+    tried, more = f'every ID 0-{MAX_ID}', ''
+  else:
+    tried, more = f'ID(s) {_format_ids(expected)}', ', or every ID (--all_ids)'
+  others = [rate for rate in table.BAUD_RATES.values() if rate != baud_rate]
+  factory = table.BAUD_RATES[1]  # Dynamixel X motors leave the factory so.
+  default = f' ({factory}: new motors)' if baud_rate != factory else ''
+  return (
+    f'bus: no motor answered at {format_baud(baud_rate)} (tried {tried}); '
+    'check power and wiring, then try another rate with --baud=RATE, one '
+    f'of {", ".join(map(str, others))}{default}{more}'
+  )
+
+
 def problems(
   reports: Sequence[MotorReport],
   robot_config: config_lib.RobotConfig | None = None,
   baud_rate: int = table.DEFAULT_BAUD_RATE,
   ids: Iterable[int] = (),
+  all_ids: bool = False,
 ) -> list[Problem]:
   """What is wrong with the scanned motors, for ROBEL.
 
@@ -225,6 +255,7 @@ def problems(
     robot_config: the robot the bus should carry (None: no expectation).
     baud_rate: the rate the bus was scanned at, bits per second.
     ids: further motors expected on the bus.
+    all_ids: whether every ID was scanned (as it is when none is expected).
 
   Returns:
     Problems, ERROR ones decide the exit status; bus-wide ones first, then
@@ -243,14 +274,9 @@ def problems(
         f'({robot_config.source}) uses {format_baud(robot_config.baud_rate)}',
       )
     )
-  if expected and not found:
+  if not found:  # Nothing to check is a failure too (a wrong baud rate).
     bus_problems.append(
-      Problem(
-        NO_MOTORS,
-        None,
-        f'bus: no motor answered at {format_baud(baud_rate)}; check power, '
-        'wiring and the baud rate (--baud), or scan every ID (--all_ids)',
-      )
+      Problem(NO_MOTORS, None, _no_motors(expected, baud_rate, all_ids))
     )
   motor_problems = _missing_problems(found, robot_config, ids)
   for report in reports:

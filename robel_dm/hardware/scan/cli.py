@@ -15,8 +15,10 @@ them back.
 
 Without a robot configuration or `--ids` every ID is scanned and nothing is
 expected. Exit status: 0 without problems, 1 if problems were found (or
-remain after `--apply`), 2 for usage and connection errors. Warnings (e.g.
-narrowed position limits) are listed but do not change the exit status.
+remain after `--apply`; no motor answering at all is one, with the IDs and
+rate tried and the other rates `--baud` takes), 2 for usage and connection
+errors. Warnings (e.g. narrowed position limits) are listed but do not
+change the exit status.
 """
 
 from collections.abc import Callable, Iterable, Sequence
@@ -164,7 +166,7 @@ def run(
       file=out,
     )
     reports = scan(client, candidates, all_ids)
-    found_problems = problems(reports, robot_config, baud_rate, ids)
+    found_problems = problems(reports, robot_config, baud_rate, ids, all_ids)
     _report(out, reports, found_problems, robot_config, device, baud_rate)
     if not apply:
       return 1 if errors(found_problems) else 0
@@ -206,7 +208,7 @@ def run(
       return 1 if errors(found_problems) else 0
     print('\nAfter --apply:', file=out)
     reports = scan(client, candidates, all_ids)
-    found_problems = problems(reports, robot_config, baud_rate, ids)
+    found_problems = problems(reports, robot_config, baud_rate, ids, all_ids)
     _report(out, reports, found_problems, robot_config, device, baud_rate)
     return 1 if errors(found_problems) else 0
   except dynamixel.DynamixelError as error:

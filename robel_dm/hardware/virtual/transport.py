@@ -5,11 +5,19 @@ thread; the unmodified `dynamixel_sdk` (or any Protocol 2.0 client) opens
 `PtyBusServer.device_path` as if it were `/dev/ttyUSB0` (docs/dynamixel.md
 section 4). Not modelled: wire timing and Return Delay Time (replies are
 immediate).
+
+A busy machine can hold the server's thread up past the SDK's reply
+deadline (~34 ms), which a motor's reply never is: the server publishes
+how far it has got on the pty itself (`protocol.encode_progress`), where a
+`DynamixelClient` in any process reads it, waits while the bus is behind,
+and calls a motor silent only once the bus has answered everything sent to
+it.
 """
 
 import collections
 import contextlib
 import errno
+import fcntl
 import logging
 import os
 import select
@@ -33,6 +41,12 @@ _SEND_TIMEOUT_S = 0.1
 _EIO_BACKOFF_S = 0.01
 
 
+def _publish(master: int, answered: int) -> None:
+  """Publishes the bytes answered, for clients to read at the pty's slave
+  end (TIOCGWINSZ)."""
+  fcntl.ioctl(master, termios.TIOCSWINSZ, protocol.encode_progress(answered))
+
+
 class PtyBusServer:
   """Serves a `Bus` on a pseudo-terminal from a daemon thread.
 
@@ -47,9 +61,11 @@ class PtyBusServer:
   settings (when `check_baud` is on and the rate is a standard one); servos
   set to another rate do not hear the packets, as on a real bus. Replies
   are written at once (no wire timing); if the client does not read them
-  they are dropped after 0.1 s. Exceptions raised while handling a packet
-  are logged and collected in `errors`, and the server carries on (an
-  error of the pty itself ends the thread, also recorded in `errors`).
+  they are dropped after 0.1 s. Once it has answered, it publishes its
+  'bytes_in' in the pty's window size (`protocol.encode_progress`).
+  Exceptions raised while handling a packet are logged and collected in
+  `errors`, and the server carries on (an error of the pty itself ends the
+  thread, also recorded in `errors`).
 
   Attributes:
     bus: the bus served.
@@ -106,6 +122,7 @@ class PtyBusServer:
     self._fds = [master, slave]
     try:
       tty.setraw(slave)
+      _publish(master, 0)
       os.set_blocking(master, False)
       wake_read, wake_write = os.pipe()
       self._fds += [wake_read, wake_write]
@@ -194,7 +211,9 @@ class PtyBusServer:
         self._answer(packets)
       # Counted once answered: a client that sent n bytes knows they are
       # processed when bytes_in reaches n.
-      self.stats['bytes_in'] += received
+      if received:
+        self.stats['bytes_in'] += received
+        _publish(self._master, self.stats['bytes_in'])
 
   def _answer(self, packets: list[protocol.Packet]) -> None:
     baud_rate = self._client_baud()
