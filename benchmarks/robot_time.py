@@ -30,6 +30,8 @@ import statistics
 import sys
 import time
 
+import training_speed  # Beside this file.
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
@@ -39,24 +41,15 @@ TASKS = {
   'stand_fixed': ('dkitty', 500, 8_000),
   'turn_fixed': ('dclaw', 1_000, 24_000),
 }
-SOLVED = 0.8
+SOLVED = training_speed.SOLVED
 
 
 def run(algo: str, task: str, seed: int, output: pathlib.Path) -> dict:
   from robel_dm import suite  # noqa: PLC0415
-  from robel_dm.learning import robot, train  # noqa: PLC0415
+  from robel_dm.learning import robot  # noqa: PLC0415
 
   domain, every, budget = TASKS[task]
-  config = train.RunConfig(
-    domain=domain,
-    task=task,
-    algo=algo,
-    seed=seed,
-    steps=budget,
-    eval_every=every,
-    eval_episodes=1,
-    stop_at_success=SOLVED,
-  )
+  config = training_speed.until_solved(domain, task, algo, seed, every, budget)
   # The D'Kitty gets back on its feet after a fall by ROBEL's scripted
   # reset (a plain move leaves a fallen robot fallen).
   reset = 'scripted' if domain == 'dkitty' else None
@@ -88,10 +81,7 @@ def simulated(algo: str, task: str, seed: int, output: pathlib.Path) -> dict:
   from robel_dm.learning import train  # noqa: PLC0415
 
   domain, every, budget = TASKS[task]
-  config = train.RunConfig(
-    domain=domain, task=task, algo=algo, seed=seed, steps=budget,
-    eval_every=every, eval_episodes=1, stop_at_success=SOLVED,
-  )  # fmt: skip
+  config = training_speed.until_solved(domain, task, algo, seed, every, budget)
   directory = output / f'{task}_{algo}_seed{seed}_simulation'
   shutil.rmtree(directory, ignore_errors=True)
   last = train.train(config, directory, log=lambda line: None)[-1]
