@@ -96,7 +96,9 @@ def test_metadata_follows_lerobot_v2_1(dataset):
     'dtype': 'float64', 'shape': [9], 'names': joints
   }  # fmt: skip
   # The agent's vector names each dimension by the observation it is from.
-  assert info['features']['observation.state']['names'][:9] == joints
+  names = info['features']['observation.state']['names']
+  assert names[:9] == [f'qpos.{joint}' for joint in joints]
+  assert names[9:18] == [f'last_action.{joint}' for joint in joints]
 
 
 def test_data_files_match_the_features(dataset):
@@ -323,3 +325,122 @@ def test_export_refuses_an_unknown_version(recorded, tmp_path):
   with pytest.raises(ValueError, match='v3.0 or v2.1'):
     lerobot.export(recorded, tmp_path / 'x', version='v4')
   assert not (tmp_path / 'x').exists()
+
+
+@pytest.mark.parametrize(
+  'domain, task', [('dclaw', 'turn_fixed'), ('dkitty', 'walk_fixed')]
+)
+def test_each_state_name_locates_its_dimension(tmp_path, domain, task):
+  # Names such as FFJ10 (in claw_qpos and last_action) or x (in root_pos,
+  # root_euler, root_vel ...) repeated over the vector.
+  evaluate.evaluate(domain, task, 1, policy='zero', record=tmp_path / 'rec')
+  info = lerobot.export(tmp_path / 'rec', tmp_path / 'out')
+  features = info['features']
+  names = features['observation.state']['names']
+  assert (
+    len(set(names)) == len(names) == features['observation.state']['shape'][0]
+  )
+  frames = {
+    k: np.array(v)
+    for k, v in _v30_frames(tmp_path / 'out', info).to_pydict().items()
+  }
+  for i, name in enumerate(names):
+    key, _, dimension = name.partition('.')
+    values = frames[f'observation.{key}']
+    if dimension:
+      values = values[
+        :, features[f'observation.{key}']['names'].index(dimension)
+      ]
+    else:
+      assert values.ndim == 1, name
+    np.testing.assert_array_equal(frames['observation.state'][:, i], values)
+
+
+def test_exported_episodes_keep_their_recording_index_and_seed(
+  dataset, dataset_v30
+):
+  # The recording's episodes 0 and 1, reset with seeds 7 and 8 (its
+  # episode 2 was cut short and is not exported).
+  expected = [(0, 7), (1, 8)]
+  out, _ = dataset
+  lines = _lines(out / 'meta/episodes.jsonl')
+  assert [
+    (e['recording_episode_index'], e['episode_seed']) for e in lines
+  ] == expected
+  out, _ = dataset_v30
+  rows = pq.read_table(
+    out / 'meta/episodes/chunk-000/file-000.parquet'
+  ).to_pylist()
+  assert [
+    (r['recording_episode_index'], r['episode_seed']) for r in rows
+  ] == expected
+
+
+def test_an_episode_without_a_seed_keeps_its_index(tmp_path):
+  # A Recorder used without evaluate records no episode_seed: after one
+  # that has it, its row says None (and the seed is not dropped).
+  evaluate.evaluate(
+    'dclaw', 'pose_fixed', 1, policy='zero', seed=7, record=tmp_path / 'rec'
+  )
+  env = recording.Recorder(
+    suite.load('dclaw', 'pose_fixed', time_limit=0.5),
+    tmp_path / 'rec',
+    metadata={'domain': 'dclaw', 'task': 'pose_fixed'},
+  )
+  timestep = env.reset()
+  while not timestep.last():
+    timestep = env.step(np.zeros(9))
+  env.close()
+  lerobot.export(tmp_path / 'rec', tmp_path / 'out')
+  rows = pq.read_table(
+    tmp_path / 'out/meta/episodes/chunk-000/file-000.parquet'
+  ).to_pylist()
+  assert [(r['recording_episode_index'], r['episode_seed']) for r in rows] == [
+    (0, 7),
+    (1, None),
+  ]
+
+
+@pytest.mark.parametrize('version', lerobot.VERSIONS)
+def test_motor_times_are_relative_to_the_episode(tmp_path, version):
+  # time.monotonic() is the uptime: in float32 (LeRobot's tensors) it keeps
+  # 6e-5 s after 10 minutes, 0.06 s after 10 days.
+  pytest.importorskip('dynamixel_sdk')
+  env = suite.load(
+    'dclaw', 'pose_fixed', seed=0, device_path='virtual', time_limit=1.0
+  )
+  env = recording.Recorder(
+    env, tmp_path / 'rec', metadata={'domain': 'dclaw', 'task': 'pose_fixed'}
+  )
+  timestep = env.reset()
+  while not timestep.last():
+    timestep = env.step(np.zeros(9))
+  env.close()
+  (episode,) = recording.read(tmp_path / 'rec')
+  info = lerobot.export(tmp_path / 'rec', tmp_path / 'out', version=version)
+  if version == 'v3.0':
+    frames = _v30_frames(tmp_path / 'out', info).to_pydict()
+    (metadata,) = pq.read_table(
+      tmp_path / 'out/meta/episodes/chunk-000/file-000.parquet'
+    ).to_pylist()
+  else:
+    path = (
+      tmp_path
+      / 'out'
+      / info['data_path'].format(episode_chunk=0, episode_index=0)
+    )
+    frames = pq.read_table(path).to_pydict()
+    (metadata,) = _lines(tmp_path / 'out/meta/episodes.jsonl')
+  # The origin: the episode's first motor read, the reset's health read.
+  steps = episode.steps
+  start = min(steps['motor.timestamp'][0], steps['motor.health_timestamp'][0])
+  assert metadata['motor_time_start'] == start
+  duration = steps['motor.timestamp'][-1] - start
+  for name in ('motor.timestamp', 'motor.health_timestamp'):
+    exported = np.array(frames[name])
+    np.testing.assert_array_equal(exported, steps[name][1:] - start)
+    assert np.all((exported >= 0) & (exported <= duration)), name
+    # What LeRobot's float32 keeps of it: within a microsecond.
+    restored = start + exported.astype(np.float32).astype(np.float64)
+    np.testing.assert_allclose(restored, steps[name][1:], rtol=0, atol=1e-6)
+  assert np.all(np.diff(frames['motor.timestamp']) > 0)

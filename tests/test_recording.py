@@ -164,7 +164,12 @@ def test_the_command_line_summarizes_a_recording(tmp_path):
     capture_output=True, text=True, check=False,
   )  # fmt: skip
   assert result.returncode == 0, result.stderr
-  assert '2 episodes, 162 steps' in result.stdout
+  # Control steps, not rows: the reset's row of each episode is not one.
+  assert '2 episodes, 160 steps' in result.stdout
+  assert [line.split()[1] for line in result.stdout.splitlines()[1:3]] == [
+    '80',
+    '80',
+  ]
   bad = subprocess.run(
     [sys.executable, '-m', 'robel_dm.recording', str(pathlib.Path('/nope'))],
     capture_output=True, text=True, check=False,

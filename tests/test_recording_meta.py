@@ -259,3 +259,36 @@ def test_a_killed_recorder_leaves_the_directory_free(tmp_path):
   done = subprocess.run([sys.executable, '-c', script], timeout=120)
   assert done.returncode == -9
   recording.Recorder(suite.load('dclaw', 'pose_fixed'), tmp_path).close()
+
+
+def test_recorders_starting_together_cannot_mix_tasks(tmp_path, monkeypatch):
+  # B finds the directory empty; before B takes the lock, A (another task)
+  # starts, records and closes. B must look again once it holds the lock.
+  from robel_dm.recording import format as format_lib  # noqa: PLC0415
+
+  prepare = format_lib.prepare
+
+  def prepare_while_another_records(directory):
+    monkeypatch.setattr(format_lib, 'prepare', prepare)
+    _record_directly(directory, {'domain': 'dclaw', 'task': 'turn_random'})
+    prepare(directory)
+
+  monkeypatch.setattr(format_lib, 'prepare', prepare_while_another_records)
+  env = suite.load('dclaw', 'pose_fixed')
+  try:
+    with pytest.raises(
+      recording.RecordingError,
+      match='holds a recording of dclaw/turn_random .*not dclaw/pose_fixed',
+    ):
+      recording.Recorder(
+        env, tmp_path, metadata={'domain': 'dclaw', 'task': 'pose_fixed'}
+      )
+  finally:
+    env.close()
+  info = json.loads((tmp_path / 'meta/info.json').read_text())
+  assert info['session']['task'] == 'turn_random'
+  assert [e.metadata['task'] for e in recording.read(tmp_path)] == [
+    'turn_random'
+  ]
+  # The refused recorder let the lock go.
+  _record_directly(tmp_path, {'domain': 'dclaw', 'task': 'turn_random'})

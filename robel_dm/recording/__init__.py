@@ -11,9 +11,10 @@ A recording directory (the paths of LeRobotDataset v2.1):
                         robot configuration and the agent's observation keys
   meta/episodes.jsonl   one line per ended episode: episode_index, length,
                         complete (and the error that ended it), domain, task,
-                        task_kwargs, and what the recorder was given (seed,
-                        policy, device path ...; evaluate adds
-                        episode_seed, the seed of the episode's reset)
+                        task_kwargs, the SHA-256 of its Parquet file, and
+                        what the recorder was given (seed, policy, device
+                        path ...; evaluate adds episode_seed, the seed of
+                        the episode's reset)
   data/chunk-000/episode_<index>.parquet   a finished episode's steps
   data/chunk-000/episode_<index>.arrows    an episode being recorded (an
                         Arrow IPC stream, its metadata in the schema; partial
@@ -41,9 +42,12 @@ Crash safety: steps are written to the episode's Arrow stream and flushed
 comes, so after `kill -9` every step completed more than a second before is
 readable, and the reader reports that episode with `complete: False` and the
 metadata it started with. A kill while an episode is being finished, a
-damaged Parquet file or episodes.jsonl line cost at most that episode (with
-a warning naming the file); no episode is read twice. A directory holds one
-task: recording another into it raises RecordingError.
+damaged Parquet file, stream or episodes.jsonl line cost at most that
+episode (a stream: the rows from the damage on), with a warning naming the
+file; the files carry checksums and are checked before a column is read
+(docs/recording.md says what is and is not detected); no episode is read
+twice. A directory holds one task: recording another into it raises
+RecordingError (checked again under the directory's lock).
 """
 
 from robel_dm.recording.format import (  # noqa: F401
@@ -51,6 +55,8 @@ from robel_dm.recording.format import (  # noqa: F401
   MIN_FREE_BYTES,
   Episode,
   RecordingError,
+)
+from robel_dm.recording.reader import (  # noqa: F401
   describe_columns,
   read,
   summarize,

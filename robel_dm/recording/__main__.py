@@ -9,14 +9,14 @@ import sys
 import warnings
 
 from robel_dm.recording import format as format_lib
-from robel_dm.recording import lerobot
+from robel_dm.recording import lerobot, reader
 
 
 def _summary(directory: str) -> None:
   with warnings.catch_warnings(record=True) as caught:
     warnings.simplefilter('always')
-    rows = format_lib.summarize(directory)
-  for warning in caught:  # A damaged file, named (see format.read).
+    rows = reader.summarize(directory)
+  for warning in caught:  # A damaged file, named (see reader.read).
     print(f'warning: {warning.message}', file=sys.stderr)
   # Violations after the reset, as python -m robel_dm.evaluate counts them.
   print(f'{"episode":>7} {"steps":>6} {"complete":>8} {"success":>7} '

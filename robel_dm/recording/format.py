@@ -1,7 +1,8 @@
-"""The recording directory's files: writing an episode, reading them back.
+"""The recording directory's files, and writing an episode (reading them
+back: `reader`).
 
 What a kill leaves, by the instant it strikes (`EpisodeWriter.finish` does
-these in order), and what `read()` makes of it:
+these in order), and what `reader.read()` makes of it:
 
   mid-episode         episode_N.arrows with every flushed batch: the episode,
                       `complete` False, metadata from the stream's schema
@@ -15,6 +16,7 @@ these in order), and what `read()` makes of it:
 
 import dataclasses
 import fcntl
+import hashlib
 import json
 import os
 import pathlib
@@ -23,8 +25,8 @@ import shutil
 import threading
 import time
 from typing import IO, Any
-import warnings
 import weakref
+import zlib
 
 import numpy as np
 
@@ -49,8 +51,16 @@ METADATA_KEY = b'robel_dm.episode'
 # The schema metadata key of the description of an episode's columns, JSON:
 # domain, task, task_kwargs, fps and `columns`, column -> unit, shape per
 # row and (vector columns) the names of its dimensions (see
-# `describe_columns`).
+# `reader.describe_columns`).
 COLUMNS_KEY = b'robel_dm.columns'
+# The schema metadata key of the CRC-32 of the rest of the schema (column
+# names and types, the other metadata), decimal: see `schema_checksum`.
+SCHEMA_CHECKSUM_KEY = b'robel_dm.schema_crc32'
+# The custom metadata key of a stream's record batch: the CRC-32 of the
+# batch as Arrow serializes it, decimal.
+BATCH_CHECKSUM_KEY = b'robel_dm.crc32'
+# The episodes.jsonl key of the SHA-256 of the episode's Parquet file, hex.
+PARQUET_CHECKSUM = 'parquet_sha256'
 _EPISODE_FILE = re.compile(r'episode_(\d+)\.(arrows|parquet|parquet\.partial)')
 
 
@@ -90,6 +100,31 @@ def require_pyarrow():
       'recordings need pyarrow: pip install "robel_dm[data]"'
     ) from error
   return pyarrow
+
+
+def _type_name(pa, type_) -> str:
+  """A column type as text, without a list's item name (Parquet renames
+  it)."""
+  if pa.types.is_list(type_):
+    return f'list<{_type_name(pa, type_.value_type)}>'
+  return str(type_)
+
+
+def schema_checksum(pa, schema) -> bytes:
+  """The CRC-32 of a schema's column names and types and its metadata (but
+  SCHEMA_CHECKSUM_KEY's), as decimal text."""
+  fields = [[field.name, _type_name(pa, field.type)] for field in schema]
+  metadata = sorted(
+    [key.hex(), value.hex()]
+    for key, value in (schema.metadata or {}).items()
+    if key != SCHEMA_CHECKSUM_KEY
+  )
+  return str(zlib.crc32(json.dumps([fields, metadata]).encode())).encode()
+
+
+def batch_checksum(batch) -> bytes:
+  """The CRC-32 of a record batch as Arrow serializes it, decimal text."""
+  return str(zlib.crc32(batch.serialize())).encode()
 
 
 def fsync_file(path: pathlib.Path) -> None:
@@ -184,7 +219,7 @@ def lock(directory: pathlib.Path) -> IO[str]:
   return handle
 
 
-def _episode_files(
+def episode_files(
   directory: pathlib.Path,
 ) -> dict[int, dict[str, pathlib.Path]]:
   """Episode index -> kind ('arrows', 'parquet', 'parquet.partial') -> path."""
@@ -201,7 +236,7 @@ def _episode_files(
 def next_index(directory: pathlib.Path) -> int:
   """The index the next episode gets: after every episode file there,
   streams and unfinished Parquet files included."""
-  return max(_episode_files(directory), default=-1) + 1
+  return max(episode_files(directory), default=-1) + 1
 
 
 def _flush_when_idle(writer_ref, stop: threading.Event) -> None:
@@ -244,7 +279,8 @@ class EpisodeWriter:
       metadata: the episode's metadata as known at its start, stored in
         the stream's schema (what `read` reports if the episode never
         finishes).
-      columns: the description of the columns (see `describe_columns`),
+      columns: the description of the columns (see
+        `reader.describe_columns`),
         stored in the schema of the stream and of the Parquet file.
     """
     self._pa = require_pyarrow()
@@ -303,8 +339,16 @@ class EpisodeWriter:
         if created:
           self._file = pa.OSFile(str(self.stream_path), 'wb')
           schema = batch.schema.with_metadata(self._schema_metadata)
+          schema = schema.with_metadata(
+            {
+              **self._schema_metadata,
+              SCHEMA_CHECKSUM_KEY: schema_checksum(pa, schema),
+            }
+          )
           self._writer = pa.ipc.new_stream(self._file, schema)
-        self._writer.write_batch(batch)
+        self._writer.write_batch(
+          batch, custom_metadata={BATCH_CHECKSUM_KEY: batch_checksum(batch)}
+        )
         self._file.flush()
         if FSYNC:
           os.fsync(self._file.fileno())
@@ -359,13 +403,21 @@ class EpisodeWriter:
       with pa.ipc.open_stream(str(self.stream_path)) as reader:
         table = reader.read_all()  # Its schema keeps the metadata.
       partial = self.parquet_path.with_name(self.parquet_path.name + '.partial')
-      pa.parquet.write_table(table, str(partial))
+      sink = pa.BufferOutputStream()
+      pa.parquet.write_table(table, sink, write_page_checksum=True)
+      data = sink.getvalue()
+      partial.write_bytes(data)
       fsync_file(partial)
       os.replace(partial, self.parquet_path)
       fsync_directory(chunk)
       self.stream_path.unlink()
       fsync_directory(chunk)
-      line = json.dumps({**metadata, 'length': self.length}).encode() + b'\n'
+      line = {
+        **metadata,
+        'length': self.length,
+        PARQUET_CHECKSUM: hashlib.sha256(data).hexdigest(),
+      }
+      line = json.dumps(line).encode() + b'\n'
       path = self.directory / EPISODES
       created = not path.exists()
       with open(path, 'a+b') as file:
@@ -384,201 +436,3 @@ class EpisodeWriter:
       raise RecordingError(
         f'finishing {self.parquet_path} failed: {error}'
       ) from error
-
-
-def _columns(table) -> dict[str, np.ndarray]:
-  steps = {}
-  for name in table.column_names:
-    values = table.column(name).to_pylist()
-    steps[name] = np.array(
-      [np.nan if v is None else v for v in values]
-      if values and not isinstance(values[0], list)
-      else [v if v is not None else [] for v in values]
-    )
-  return steps
-
-
-def _read_stream(path: pathlib.Path):
-  """The complete record batches of a (possibly truncated) Arrow stream."""
-  pa = require_pyarrow()
-  batches = []
-  schema = None
-  try:
-    with pa.ipc.open_stream(str(path)) as reader:
-      schema = reader.schema
-      for batch in reader:
-        batches.append(batch)
-  except (OSError, pa.ArrowException):
-    pass  # A write cut short by a crash: keep what came before.
-  if not batches:
-    return None
-  return pa.Table.from_batches(batches, schema=schema)
-
-
-def _stored_metadata(table) -> dict[str, Any] | None:
-  """The episode metadata in a stream's or Parquet file's schema."""
-  stored = (table.schema.metadata or {}).get(METADATA_KEY)
-  try:
-    metadata = json.loads(stored) if stored else None
-  except ValueError:
-    return None
-  return metadata if isinstance(metadata, dict) else None
-
-
-def describe_columns(path: str | pathlib.Path) -> dict[str, Any]:
-  """The description an episode file carries of its columns (a Parquet
-  file, or an `.arrows` stream), read from the file alone.
-
-  Returns:
-    domain, task, task_kwargs (what the recorder was told; None where it
-    was not), task_class, fps and `columns`: column -> {'unit': the unit
-    ('rad', 'rad/s', 's', 'mA', 'degC', 'V', 'm', 'm/s'; '' if unitless,
-    None if unknown), 'shape': the shape of one row's value ([] for a
-    scalar, [n] for a vector), 'names': a vector's dimension names (joint
-    names, motor IDs, axes; None if unknown)}.
-
-  Raises:
-    RecordingError: if the file is unreadable or carries no description
-      (recorded before robel_dm described its columns).
-  """
-  pa = require_pyarrow()
-  path = pathlib.Path(path)
-  try:
-    if path.suffix == '.arrows':
-      with pa.ipc.open_stream(str(path)) as reader:
-        schema = reader.schema
-    else:
-      schema = pa.parquet.read_schema(str(path))
-  except (OSError, pa.ArrowException) as error:
-    raise RecordingError(f'cannot read {path}: {error}') from error
-  stored = (schema.metadata or {}).get(COLUMNS_KEY)
-  try:
-    description = json.loads(stored) if stored else None
-  except ValueError:
-    description = None
-  if not isinstance(description, dict):
-    raise RecordingError(
-      f'{path} has no description of its columns (recorded before '
-      'robel_dm described them; docs/recording.md lists their units)'
-    )
-  return description
-
-
-def _read_lines(directory: pathlib.Path) -> dict[int, dict[str, Any]]:
-  """Episode index -> its episodes.jsonl line; a damaged line is skipped."""
-  lines = {}
-  path = directory / EPISODES
-  if not path.is_file():
-    return lines
-  text = path.read_bytes().decode('utf-8', errors='replace')
-  for number, line in enumerate(text.splitlines(), 1):
-    if not line.strip():
-      continue
-    try:
-      entry = json.loads(line)
-      lines[int(entry['episode_index'])] = entry
-    except (ValueError, TypeError, KeyError) as error:
-      warnings.warn(
-        f'{path} line {number} is damaged ({error}); skipped',
-        stacklevel=3,
-      )
-  return lines
-
-
-def _read_info(directory: pathlib.Path) -> dict[str, Any]:
-  path = directory / INFO
-  try:
-    info = json.loads(path.read_text())
-  except (OSError, ValueError) as error:
-    warnings.warn(f'{path} is unreadable ({error}); ignored', stacklevel=3)
-    return {}
-  return info if isinstance(info, dict) else {}
-
-
-def read(directory: str | pathlib.Path) -> list[Episode]:
-  """Every episode of a recording, in order; partial ones last-known.
-
-  A damaged file costs only its episode, with a warning naming it: a
-  leftover `.parquet.partial` is ignored (the episode is read from its
-  stream if that is still there), an unreadable Parquet file falls back to
-  its stream (or the episode is skipped), a damaged episodes.jsonl line is
-  skipped. An episode with both a Parquet file and a stream (a kill between
-  the rename and the unlink) is read once, from the Parquet file.
-
-  Raises:
-    RecordingError: if the directory is not a recording.
-  """
-  directory = pathlib.Path(directory)
-  if not (directory / INFO).is_file():
-    raise RecordingError(f'{directory} is not a robel_dm recording')
-  pa = require_pyarrow()
-  lines = _read_lines(directory)
-  info = _read_info(directory)
-  session = {
-    **info.get('session', {}),
-    **({'robot': info['robot']} if info.get('robot') else {}),
-  }  # What a stream of an older version, without its own metadata, gets.
-  episodes = []
-  for index, files in sorted(_episode_files(directory).items()):
-    if 'parquet.partial' in files:
-      warnings.warn(
-        f'{files["parquet.partial"]} is an unfinished Parquet file (the '
-        'process stopped while writing it); ignored',
-        stacklevel=2,
-      )
-    table = None
-    if 'parquet' in files:
-      try:
-        table = pa.parquet.read_table(str(files['parquet']))
-      except (OSError, pa.ArrowException) as error:
-        fallback = 'read from its stream' if 'arrows' in files else 'skipped'
-        warnings.warn(
-          f'{files["parquet"]} is unreadable ({error}); episode {index} '
-          f'{fallback}',
-          stacklevel=2,
-        )
-    if table is None and 'arrows' in files:
-      table = _read_stream(files['arrows'])
-    if table is None:
-      continue
-    metadata = lines.get(index)
-    if metadata is None:  # Cut short, or killed before its line.
-      metadata = {
-        **(_stored_metadata(table) or session),
-        'episode_index': index,
-        'complete': False,
-        'length': table.num_rows,
-      }
-    episodes.append(Episode(metadata, _columns(table)))
-  return episodes
-
-
-def summarize(directory: str | pathlib.Path) -> list[dict[str, Any]]:
-  """One line per episode: index, steps, complete, success, return, safety.
-
-  Safety is the violations summed over the steps after the reset (the
-  reset's row, step_type FIRST, is not counted), as `evaluate` counts them.
-  """
-  rows = []
-  for episode in read(directory):
-    steps = episode.steps
-    rewards = steps.get('next.reward', np.zeros(0))
-    success = steps.get('observation.success')
-    safety = steps.get('observation.safety')
-    if safety is not None:
-      step_types = steps.get('step_type', np.zeros(0))
-      first = int(len(step_types) > 0 and step_types[0] == 0)  # dm_env FIRST
-      safety = np.sum(safety[first:], axis=0).tolist()
-    rows.append(
-      {
-        'episode': episode.metadata['episode_index'],
-        'steps': len(episode),
-        'complete': bool(episode.metadata.get('complete')),
-        'success': bool(success[-1])
-        if success is not None and len(success)
-        else None,
-        'return': float(np.nansum(rewards)),
-        'safety': safety,
-      }
-    )
-  return rows

@@ -17,15 +17,28 @@ one into the other:
                        float32, which would round epoch times to minutes)
     action             row t+1's action (the normalized action taken at t)
     joint_targets, next.reward, discount, next.done, reward_terms.*,
-    motor.*            row t+1's values (what that action led to)
+    motor.*            row t+1's values (what that action led to);
+                       motor.timestamp and motor.health_timestamp as
+                       seconds since the episode's first motor read (the
+                       reset's health read), whose time.monotonic() is the
+                       episode's `motor_time_start` (float32 would round
+                       monotonic times to steps of 0.06 s after 10 days of
+                       uptime)
     timestamp          row t's time, s (float64)
     index, episode_index, frame_index, task_index
+
+Each episode's metadata also keeps its link to the recording:
+`recording_episode_index` and, where the recording says, `episode_seed`
+(the seed of the episode's reset, with which a replay reproduces it).
 
 The episode's final observation (row N) has no action and is not a frame, as
 in LeRobot's own recordings. Only complete episodes are exported. A column of
 one value per frame is stored as a scalar and declared with shape [1] (how
 LeRobot reads such a feature); vector features carry the names of their
-dimensions (joint names, motor IDs) where the recording knows them.
+dimensions (joint names, motor IDs) where the recording knows them;
+observation.state names each of its dimensions uniquely, by the
+observation it comes from ('claw_qpos.FFJ10', 'last_action.FFJ10',
+'root_pos.x').
 
 v3.0 (the default; what LeRobot 0.4 and later read) writes
 
@@ -52,6 +65,7 @@ from typing import Any
 import numpy as np
 
 from robel_dm.recording import format as format_lib
+from robel_dm.recording import reader
 
 VERSIONS = ('v3.0', 'v2.1')
 CHUNK_SIZE = 1000  # Files (v3.0) or episodes (v2.1) per chunk directory.
@@ -112,7 +126,12 @@ def _frames(episode: format_lib.Episode, keys) -> dict[str, np.ndarray]:
 def _names(
   columns: dict[str, dict[str, Any]], keys
 ) -> dict[str, list[str] | None]:
-  """Column -> its dimension names (None where unknown or a scalar)."""
+  """Column -> its dimension names (None where unknown or a scalar).
+
+  `observation.state` names each dimension by the observation it comes
+  from, unique over the vector: 'upright' (one value), 'claw_qpos.FFJ10',
+  'root_pos.x', or 'key[0]' where the recording does not name them.
+  """
   names = {k: v.get('names') for k, v in columns.items()}
   if keys:
     state = []
@@ -120,7 +139,12 @@ def _names(
       column = columns.get(f'observation.{key}', {})
       size = int(np.prod(column.get('shape') or [1]))
       known = column.get('names')
-      state += known if known else [f'{key}[{i}]' for i in range(size)]
+      if size == 1:
+        state.append(key)
+      elif known and len(known) == size:
+        state += [f'{key}.{name}' for name in known]
+      else:
+        state += [f'{key}[{i}]' for i in range(size)]
     names['observation.state'] = state
   return names
 
@@ -155,7 +179,7 @@ def _description(directory: pathlib.Path, episode_index: int) -> dict:
   """The recording's description of its columns (empty if it has none)."""
   path = directory / format_lib.CHUNK / f'episode_{episode_index:06d}.parquet'
   try:
-    return format_lib.describe_columns(path)
+    return reader.describe_columns(path)
   except format_lib.RecordingError:
     return {}
 
@@ -163,7 +187,7 @@ def _description(directory: pathlib.Path, episode_index: int) -> dict:
 def _episodes(directory: pathlib.Path):
   episodes = [
     e
-    for e in format_lib.read(directory)
+    for e in reader.read(directory)
     if e.metadata.get('complete') and len(e) > 1
   ]
   if not episodes:
@@ -173,8 +197,41 @@ def _episodes(directory: pathlib.Path):
   return episodes
 
 
+# The motor clock's columns (time.monotonic(), s), exported as seconds since
+# the episode's first motor read: in float32, as LeRobot hands them to
+# torch, monotonic times are rounded to 0.06 s after 10 days of uptime.
+_MOTOR_TIMES = ('motor.timestamp', 'motor.health_timestamp')
+
+
+def _relative_times(episode: format_lib.Episode, columns: dict) -> dict:
+  """Makes the wall-clock and motor-clock columns relative to the episode's
+  start; returns the starts (float64), for the episode's metadata."""
+  wall_time = columns.pop('wall_time')
+  columns['wall_time_elapsed'] = wall_time - wall_time[0]
+  starts = {'wall_time_start': float(wall_time[0])}
+  first_reads = [
+    episode.steps[name][0] for name in _MOTOR_TIMES if name in episode.steps
+  ]  # Row 0's: the reset's reads, its health read first.
+  if first_reads and np.isfinite(first_reads).any():
+    start = float(np.nanmin(first_reads))
+    for name in _MOTOR_TIMES:
+      if name in columns:
+        columns[name] = columns[name] - start
+    starts['motor_time_start'] = start
+  return starts
+
+
+def _links(metadata: dict[str, Any]) -> dict[str, Any]:
+  """What ties an exported episode to its recording: the recording's
+  episode index and, where it says, the seed of the episode's reset."""
+  links = {'recording_episode_index': metadata['episode_index']}
+  if metadata.get('episode_seed') is not None:
+    links['episode_seed'] = metadata['episode_seed']
+  return links
+
+
 def _converted(directory, episodes, keys, names, features: dict):
-  """Yields each episode's (index, task, task index, wall-clock start,
+  """Yields each episode's (index, task, task index, episode metadata,
   columns); fills `features` from the first and checks the others."""
   tasks: dict[str, int] = {}
   total_frames = 0
@@ -191,8 +248,10 @@ def _converted(directory, episodes, keys, names, features: dict):
       'task_index': np.full(length, task_index),
       **frames,
     }
-    wall_time = columns.pop('wall_time')
-    columns['wall_time_elapsed'] = wall_time - wall_time[0]
+    metadata = {
+      **_relative_times(episode, columns),
+      **_links(episode.metadata),
+    }
     episode_features = {
       k: _feature(v, names.get(k)) for k, v in columns.items()
     }
@@ -204,8 +263,7 @@ def _converted(directory, episodes, keys, names, features: dict):
         'columns than the first; export one task per dataset'
       )
     total_frames += length
-    start = float(wall_time[0])
-    yield episode_index, task, task_index, start, columns
+    yield episode_index, task, task_index, metadata, columns
 
 
 def export(
@@ -310,7 +368,7 @@ def _write_v21(pa, staging: pathlib.Path, converted):
     open(staging / format_lib.EPISODES, 'w') as episodes_file,
     open(staging / 'meta/episodes_stats.jsonl', 'w') as stats_file,
   ):
-    for episode_index, task, task_index, start, columns in converted:
+    for episode_index, task, task_index, metadata, columns in converted:
       tasks[task] = task_index
       length = len(columns['index'])
       path = staging / V21_DATA_PATH.format(
@@ -324,7 +382,7 @@ def _write_v21(pa, staging: pathlib.Path, converted):
             'episode_index': episode_index,
             'tasks': [task],
             'length': length,
-            'wall_time_start': start,
+            **metadata,
           }
         )
         + '\n'
@@ -363,7 +421,7 @@ def _write_v30(pa, staging: pathlib.Path, converted):
     pending, pending_bytes = [], 0
     file_number += 1
 
-  for episode_index, task, task_index, start, columns in converted:
+  for episode_index, task, task_index, metadata, columns in converted:
     tasks[task] = task_index
     table = _arrow_table(pa, columns)
     if pending and pending_bytes + table.nbytes > DATA_FILE_MB * 2**20:
@@ -381,7 +439,7 @@ def _write_v30(pa, staging: pathlib.Path, converted):
       'dataset_to_index': frames + length,
       'meta/episodes/chunk_index': 0,
       'meta/episodes/file_index': 0,
-      'wall_time_start': start,
+      **metadata,
     }
     for name, values in columns.items():
       for stat, value in _stats(values).items():
@@ -392,7 +450,11 @@ def _write_v30(pa, staging: pathlib.Path, converted):
   flush()
   episodes_path = staging / V30_EPISODES_PATH
   episodes_path.parent.mkdir(parents=True)
-  pa.parquet.write_table(pa.Table.from_pylist(rows), str(episodes_path))
+  # Every key of any row (from_pylist would keep the first row's): an
+  # episode without a seed among episodes with one gets a null.
+  keys = dict.fromkeys(key for row in rows for key in row)
+  table = pa.table({key: [row.get(key) for row in rows] for key in keys})
+  pa.parquet.write_table(table, str(episodes_path))
   stats = {k: _stats(np.concatenate(v)) for k, v in every_column.items()}
   (staging / 'meta/stats.json').write_text(json.dumps(stats, indent=1))
   _write_tasks(pa, staging / 'meta/tasks.parquet', tasks)

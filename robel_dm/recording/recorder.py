@@ -128,7 +128,7 @@ def _names(column: str, size: int, joints: tuple, motors: tuple):
 
 def describe_columns(env, row: dict[str, Any], session: dict[str, Any]):
   """The description of the columns of `row` (see
-  `format.describe_columns`): computed once per episode, from its first
+  `reader.describe_columns`): computed once per episode, from its first
   row."""
   task = env.task
   joints = tuple(joint.name for joint in task.robot.joints)
@@ -235,8 +235,9 @@ class Recorder(dm_env.Environment):
       RecordingError: if the directory is not writable, the disk is full,
         another process records into it, or it holds a recording of
         another task or observation keys (the
-        session's domain, task or task_kwargs, where both name them);
-        raised before the robot moves and before anything is written.
+        session's domain, task or task_kwargs, where both name them;
+        checked again once the directory's lock is held); raised before
+        the robot moves and before anything is written.
     """
     self._env = env
     self._directory = pathlib.Path(directory)
@@ -256,9 +257,15 @@ class Recorder(dm_env.Environment):
     format_lib.prepare(self._directory)
     self._lock = format_lib.lock(self._directory)
     try:
+      # Again under the lock, which decides: a recorder of another task may
+      # have started, written its info.json and closed since the check.
+      _check_same_task(self._directory, info)
       format_lib.write_atomically(
         self._directory / format_lib.INFO, json.dumps(info, indent=1)
       )
+    except format_lib.RecordingError:
+      self._lock.close()
+      raise
     except (OSError, TypeError, ValueError) as error:
       self._lock.close()
       raise format_lib.RecordingError(
