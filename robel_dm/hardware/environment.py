@@ -108,7 +108,9 @@ class HardwareEnvironment(environment_lib.Environment):
 def _disconnect(connection: connection_lib.Connection) -> None:
   """Releases the motors and closes the port, then whatever else the
   connection opened (the virtual bus, a tracker), each whatever the others
-  raise."""
+  raise. A forked child's copy closes nothing: its owner does."""
+  if not connection.robot.in_owner_process:
+    return
   try:
     connection.robot.client.disconnect()
   finally:

@@ -22,12 +22,29 @@ stopped. With no robot registered it does exactly what the default does
 (the process dies of the signal). A program that connects from a worker
 thread must import this module from the main thread first; if it did not,
 the connection logs a warning saying so.
+
+Ctrl-C: Python's default stays (KeyboardInterrupt in the main thread),
+but once Ctrl-C has been pressed, the end of the main thread releases every
+robot at once. Python would otherwise wait, the robot driven on, for a
+non-daemon worker thread that drives it, until a second Ctrl-C. A daemon
+thread waits for both events, in either order: a program that catches the
+interrupt keeps its robot while its main thread runs. The robot's later
+commands raise an error naming SIGINT. A program that installs its own
+SIGINT handler keeps it, and this does not apply.
+
+A robot belongs to the process that connected it. A forked child
+(`os.fork`, multiprocessing's fork start method) inherits the registry and
+the exit handler, and neither releases the parent's robots there; its
+signals get Python's default handling back (a terminated child dies of
+SIGTERM) until it connects a robot of its own. `HardwareRobot` refuses to
+drive the parent's robots from the child.
 """
 
 import atexit
 from collections.abc import Callable, Iterator
 import contextlib
 import logging
+import os
 import signal
 import threading
 
@@ -42,24 +59,33 @@ DEFERRED_SIGNALS = (
 EXIT_SIGNALS = (signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT)
 
 _LOCK = threading.RLock()
-# Releasers of the connected clients: id(client) -> release callable.
-_LIVE: dict[int, Callable[[], None]] = {}
-# The exit signal whose handler released the robots (the program is ending).
+# Releasers of the connected clients: id(client) -> (the pid of the process
+# that connected it, its release callable). A forked child inherits them.
+_LIVE: dict[int, tuple[int, Callable[[], None]]] = {}
+# The signal on which the robots were released (the program is ending).
 _EXIT_SIGNAL: list[signal.Signals] = []
 # Whether the handler is running (a repeated signal then changes nothing),
-# and whether the warning about a worker thread's robot was logged.
-_STATE = {'handling': False, 'warned': False}
+# whether the warning about a worker thread's robot was logged, and the
+# process whose thread releases the robots after Ctrl-C (see
+# `_release_after_interrupt`).
+_STATE = {'handling': False, 'warned': False, 'watcher_pid': 0}
+# Set by the first Ctrl-C (SIGINT under this module's handler).
+_INTERRUPTED = threading.Event()
+# The forking thread's signal mask while it forks (see `_before_fork`).
+_FORK = threading.local()
 
 
 def register(key: object, release: Callable[[], None]) -> None:
   """Keeps `release` to be called at exit until `unregister(key)`.
 
+  Only this process calls it: a forked child leaves it to its parent.
   From the main thread, also installs the exit-signal handler (where the
   signals still have their default action); from another thread, logs one
   warning if an exit signal would still kill the program unreleased.
   """
   with _LOCK:
-    _LIVE[id(key)] = release
+    _LIVE[id(key)] = (os.getpid(), release)
+  _watch_for_interrupts()
   if threading.current_thread() is threading.main_thread():
     install_exit_signals()
   else:
@@ -71,22 +97,34 @@ def unregister(key: object) -> None:
     _LIVE.pop(id(key), None)
 
 
-def registered() -> int:
-  """How many releasers are registered (for tests and diagnostics)."""
+def _own_releasers() -> list[Callable[[], None]]:
+  """The releasers of the robots this process connected."""
+  pid = os.getpid()
   with _LOCK:
-    return len(_LIVE)
+    return [release for owner, release in _LIVE.values() if owner == pid]
+
+
+def registered() -> int:
+  """How many releasers this process registered (for tests and
+  diagnostics); those a forked child inherited do not count."""
+  return len(_own_releasers())
 
 
 def exit_signal() -> signal.Signals | None:
-  """The exit signal on which the robots were released, or None."""
+  """The signal on which the robots were released, or None."""
   return _EXIT_SIGNAL[0] if _EXIT_SIGNAL else None
 
 
-def release_all() -> None:
-  """Calls every registered releaser; one failing never stops the others."""
+def _note_exit_signal(signum: int) -> None:
   with _LOCK:
-    releasers = list(_LIVE.values())
-  for release in releasers:
+    if not _EXIT_SIGNAL:
+      _EXIT_SIGNAL.append(signal.Signals(signum))
+
+
+def release_all() -> None:
+  """Calls every releaser this process registered; one failing never
+  stops the others."""
+  for release in _own_releasers():
     try:
       with deferred_signals():
         release()
@@ -131,14 +169,11 @@ def _on_exit_signal(signum, frame) -> None:
   del frame
   if _STATE['handling']:
     return  # A repeat while the robots are being released: exiting anyway.
-  with _LOCK:
-    robots = bool(_LIVE)
-  if not robots:
+  if not _own_releasers():  # None, or only a parent's (a forked child).
     signal.signal(signum, signal.SIG_DFL)
     signal.raise_signal(signum)
     return
-  if not _EXIT_SIGNAL:
-    _EXIT_SIGNAL.append(signal.Signals(signum))
+  _note_exit_signal(signum)
   _STATE['handling'] = True
   try:
     release_all()
@@ -147,14 +182,98 @@ def _on_exit_signal(signum, frame) -> None:
   raise SystemExit(128 + signum)
 
 
+def _on_interrupt(signum, frame) -> None:
+  """Notes the Ctrl-C for `_release_after_interrupt`, then raises
+  KeyboardInterrupt as Python's default handler does."""
+  _INTERRUPTED.set()
+  if not threading.main_thread().is_alive():
+    # Python only waits for worker threads now: the program is ending.
+    _note_exit_signal(signum)
+  signal.default_int_handler(signum, frame)
+
+
+def _watch_for_interrupts() -> None:
+  """Starts this process's `_release_after_interrupt` thread, once."""
+  with _LOCK:
+    if _STATE['watcher_pid'] == os.getpid():
+      return
+    _STATE['watcher_pid'] = os.getpid()
+  threading.Thread(
+    target=_release_after_interrupt,
+    name='robel_dm release after Ctrl-C',
+    daemon=True,
+  ).start()
+
+
+def _release_after_interrupt() -> None:
+  """Once the main thread has ended and Ctrl-C was pressed, releases every
+  robot, then lets Python wait for the threads that drove them."""
+  threading.main_thread().join()
+  _INTERRUPTED.wait()
+  _note_exit_signal(signal.SIGINT)
+  release_all()
+
+
+def _release_at_exit() -> None:
+  """The exit handler: the robots' commands name a Ctrl-C that ended the
+  program, if one did."""
+  if _INTERRUPTED.is_set():
+    _note_exit_signal(signal.SIGINT)
+  release_all()
+
+
+def _our_signals() -> dict[int, object]:
+  """Signal -> Python's default handling, for those handled here."""
+  defaults = dict.fromkeys(EXIT_SIGNALS, signal.SIG_DFL)
+  defaults[signal.SIGINT] = signal.default_int_handler
+  ours = (_on_exit_signal, _on_interrupt)
+  return {s: d for s, d in defaults.items() if signal.getsignal(s) in ours}
+
+
+def _before_fork() -> None:
+  """Holds this module's signals back in the forking thread.
+
+  Python drops a signal that reaches a child before its fork is complete
+  (a Pool worker that is still starting then outlives terminate()). Held
+  back, it stays pending in both processes until `_after_fork_*`.
+  """
+  _FORK.mask = signal.pthread_sigmask(signal.SIG_BLOCK, _our_signals())
+
+
+def _after_fork_in_parent() -> None:
+  mask = getattr(_FORK, 'mask', None)
+  if mask is not None:
+    _FORK.mask = None
+    signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+
+
+def _after_fork_in_child() -> None:
+  """A forked child starts unlocked and uninterrupted, with no thread of
+  its own waiting for Ctrl-C, and with Python's signal handling (a SIGTERM
+  held back during the fork then kills it) until it connects a robot of
+  its own; its parent's robots stay registered, and are skipped, as the
+  parent's."""
+  global _LOCK, _INTERRUPTED  # noqa: PLW0603 (fresh copies in the child)
+  _LOCK = threading.RLock()  # Another thread may hold the parent's.
+  _INTERRUPTED = threading.Event()
+  _STATE['handling'] = False
+  with contextlib.suppress(ValueError):  # Not the main interpreter.
+    for signum, default in _our_signals().items():
+      signal.signal(signum, default)
+  _after_fork_in_parent()  # Restores the signal mask.
+
+
 def install_exit_signals() -> None:
   """Makes SIGTERM, SIGHUP and SIGQUIT release the motors and exit through
-  Python, unless the program handles them itself (main thread only)."""
+  Python, and notes Ctrl-C (see the module's docstring), unless the program
+  handles them itself (main thread only)."""
   if threading.current_thread() is not threading.main_thread():
     return
   for signum in EXIT_SIGNALS:
     if signal.getsignal(signum) is signal.SIG_DFL:
       signal.signal(signum, _on_exit_signal)
+  if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+    signal.signal(signal.SIGINT, _on_interrupt)
 
 
 def _warn_if_unprotected() -> None:
@@ -180,4 +299,9 @@ def _warn_if_unprotected() -> None:
 
 
 install_exit_signals()
-atexit.register(release_all)
+atexit.register(_release_at_exit)
+os.register_at_fork(
+  before=_before_fork,
+  after_in_parent=_after_fork_in_parent,
+  after_in_child=_after_fork_in_child,
+)
