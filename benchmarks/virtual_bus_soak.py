@@ -6,8 +6,8 @@ and the D'Kitty (Stand): steps with a random fault injected before each one
 writes, a motor gone or back; often none), the robot reset after a fault or
 at an episode's end. Prints the step times, apart for the steps that went
 through and those that faulted (a fault also releases the robot, which asks
-a silent motor to confirm its torque off for 0.5 s), and how many took 1 s
-or more.
+the silent motors to confirm their torque off for 0.5 s, together), and how
+many took 1 s or more.
 
 Standalone (`python -m robel_dm.tools.virtual_bus --driver=sim`, its own
 process, real time): a D'Claw client writes goals and reads the state at

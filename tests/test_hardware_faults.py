@@ -207,6 +207,31 @@ def test_motors_that_cannot_be_released_are_named_in_one_error_line(
   )
 
 
+def test_motors_that_miss_the_release_are_asked_again_together(
+  lockstep, claw, monkeypatch
+):
+  # One window for all: a gone motor does not make the others wait their
+  # turn (a release with several motors unplugged takes 0.5 s, not 0.5 s
+  # each).
+  bus = claw.virtual_bus
+  asked = []
+  handle = bus.handle
+
+  def recording(packet, baud_rate=None):
+    if packet.id in (21, 31) and packet.params == bytes(
+      [table.TORQUE_ENABLE.address, 0, 0]
+    ):
+      asked.append(packet.id)
+    return handle(packet, baud_rate)
+
+  monkeypatch.setattr(bus, 'handle', recording)
+  for motor_id in (21, 31):
+    bus.faults.set_absent(motor_id)
+  claw.close()
+  assert asked[:4] == [21, 31, 21, 31], asked
+  assert abs(asked.count(21) - asked.count(31)) <= 1, asked
+
+
 # --- Re-sent goals read back --------------------------------------------------
 
 

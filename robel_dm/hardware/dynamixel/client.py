@@ -316,8 +316,8 @@ class DynamixelClient(register_access.RegisterAccess):
       self.disconnect()
 
   def _release_all(self) -> None:
-    """Torque off for every motor: broadcast, then confirmed one by one,
-    each retried for a while (`confirm_torque_off`)."""
+    """Torque off for every motor: broadcast, then confirmed by each, those
+    that miss it asked again for a while (`confirm_torque_off`)."""
     try:
       with port_lib.port_errors(self._device_path, 'releasing the motors'):
         self._call(
@@ -328,14 +328,14 @@ class DynamixelClient(register_access.RegisterAccess):
         )
         if self._bus_silent:
           return
-        held = [i for i in self._ids if not self.confirm_torque_off(i)]
+        held = self.confirm_torque_off(self._ids)
     except port_lib.PortError as error:
       logging.error('could not release the motors: %s', error)
       return
     if held:
       logging.error(
         'motors %s on %s did not confirm their torque off within %.1f s '
-        'each (a broadcast asked every motor): they may still hold it',
+        '(a broadcast asked every motor): they may still hold it',
         held,
         self._device_path,
         register_access.RELEASE_CONFIRM_S,

@@ -33,7 +33,8 @@ except ImportError:  # pragma: no cover - exercised without the extra
   sdk = None
 
 _TORQUE_RETRY_INTERVAL_S = 0.05
-# A release asks each motor to confirm its torque off for up to this long.
+# A release asks the motors to confirm their torque off for up to this long,
+# all of them together.
 RELEASE_CONFIRM_S = 0.5
 _RELEASE_RETRY_INTERVAL_S = 0.02
 # What the client's packet handler answers (beside the SDK's COMM_* results)
@@ -355,19 +356,23 @@ class RegisterAccess:
         self.raise_on_hardware_errors(refused)
         raise DynamixelError(f'motors {refused} kept their torque off', refused)
 
-  def confirm_torque_off(self, motor_id: int) -> bool:
-    """Turns a motor's torque off; whether it confirmed, retried for up to
-    `RELEASE_CONFIRM_S` (a motor may miss a few packets, then answer)."""
+  def confirm_torque_off(self, motor_ids) -> list[int]:
+    """Turns the motors' torque off, asking again those that do not confirm
+    (a motor may miss a few packets, then answer) until `RELEASE_CONFIRM_S`
+    has passed for all of them together; returns those that never did."""
     deadline = time.monotonic() + RELEASE_CONFIRM_S
+    unconfirmed = list(motor_ids)
     while True:
-      result, error = self._call(
-        self._packets.write1ByteTxRx, motor_id, table.TORQUE_ENABLE.address, 0
-      )
-      if result == sdk.COMM_SUCCESS and not error & ~table.ALERT_BIT:
-        return True
-      if time.monotonic() >= deadline:
-        return False
+      unconfirmed = [i for i in unconfirmed if not self._torque_off_once(i)]
+      if not unconfirmed or time.monotonic() >= deadline:
+        return unconfirmed
       time.sleep(_RELEASE_RETRY_INTERVAL_S)
+
+  def _torque_off_once(self, motor_id: int) -> bool:
+    result, error = self._call(
+      self._packets.write1ByteTxRx, motor_id, table.TORQUE_ENABLE.address, 0
+    )
+    return result == sdk.COMM_SUCCESS and not error & ~table.ALERT_BIT
 
   def hardware_errors(self, motor_ids=None) -> dict[int, int]:
     """Hardware Error Status of the motors that have one (bits, see table)."""
