@@ -10,15 +10,16 @@ after every step for the learner to make the updates that step allows
 the time; `--updates_per_step` of the agent's own), evaluating the
 deterministic actor on the robot every `eval_every` robot steps (one
 episode: a Fixed task's episodes are the same) and stopping at the first
-evaluation with success >= 0.8; the D'Kitty resets by ROBEL's scripted
-stand-up. Reported per run: robot steps and robot
-seconds (the robot's clock: control periods, resets and evaluation
-episodes included) to that evaluation, and the CPU seconds of the actor's
-process (the learner's are its own). With --simulation, each run is also
-made in simulation (`train`, the same evaluations and stop), beside it:
-env steps, wall and CPU seconds to 80% on this machine. One JSON line per
-run, also appended to --output/results.jsonl; then a table of medians per
-task and agent over the seeds.
+evaluation with success >= 0.8; a D'Kitty that fell is stood back on
+its start mark by the simulated person of `--reset=manual`. Reported per
+run: robot steps and robot seconds (the robot's clock: control periods,
+resets and evaluation episodes included) to that evaluation, and the CPU
+seconds of the actor's process (the learner's are its own). With
+--simulation, each run is also made in simulation (`train`, the same
+evaluations and stop), beside it: env steps, wall and CPU seconds to 80%
+on this machine. One JSON line per run, also appended to
+--output/results.jsonl; then a table of medians per task and agent over
+the seeds.
 """
 
 import argparse
@@ -50,9 +51,9 @@ def run(algo: str, task: str, seed: int, output: pathlib.Path) -> dict:
 
   domain, every, budget = TASKS[task]
   config = training_speed.until_solved(domain, task, algo, seed, every, budget)
-  # The D'Kitty gets back on its feet after a fall by ROBEL's scripted
-  # reset (a plain move leaves a fallen robot fallen).
-  reset = 'scripted' if domain == 'dkitty' else None
+  # A person stands a fallen D'Kitty back up (a plain move leaves it
+  # fallen, and ROBEL's scripted stand-up does not right it from its back).
+  reset = 'manual' if domain == 'dkitty' else None
   options = robot.RobotRunOptions(suite.RobotOptions('virtual', reset=reset))
   directory = output / f'{task}_{algo}_seed{seed}'
   shutil.rmtree(directory, ignore_errors=True)

@@ -270,17 +270,44 @@ def test_tracker_gives_the_torso_calibrates_at_reset_and_moves_the_target():
     env.close()
 
 
-def test_dkitty_manual_reset_waits_until_the_robot_is_stood_up():
+def _knock_over(env) -> None:
+  simulation = env.simulated_robot
+  physics = simulation.physics
+  root = int(physics.bind(env.task.root_joint).qposadr)
+  physics.data.qpos[root : root + 7] = [0, 0, 0.15, 0, 1, 0, 0]  # On its back.
+  simulation.advance(1.0)
+
+
+def test_a_fallen_virtual_dkitty_is_stood_up_by_the_simulated_person():
+  env = suite.load(
+    'dkitty', 'stand_fixed', seed=0, device_path='virtual', reset='manual'
+  )
+  try:
+    env.reset()
+    _, start_height = resets.upright_and_height(env.simulated_robot.torso_pose)
+    _knock_over(env)
+    assert resets.upright_and_height(env.simulated_robot.torso_pose)[0] < 0
+    timestep = env.reset()
+    upright, height = resets.upright_and_height(env.simulated_robot.torso_pose)
+    assert upright > 0.99
+    assert height == pytest.approx(start_height, abs=0.02)
+    assert timestep.observation['upright'] > 0.99
+    assert all(_torque(env.virtual_bus).values())
+  finally:
+    env.close()
+
+
+def test_dkitty_manual_reset_waits_until_the_robot_is_stood_up(monkeypatch):
+  # The simulated person does not come.
+  monkeypatch.setattr(
+    sim_robot.SimulatedRobot, 'place_at_start', lambda self: None
+  )
   env = suite.load(
     'dkitty', 'walk_fixed', seed=0, device_path='virtual', reset='manual'
   )
   try:
     env.reset()  # Already standing: the wait ends after 6 good checks.
-    simulation = env.simulated_robot
-    physics = simulation.physics
-    root = int(physics.bind(env.task.root_joint).qposadr)
-    physics.data.qpos[root : root + 7] = [0, 0, 0.15, 0, 1, 0, 0]  # Fallen.
-    simulation.advance(1.0)
+    _knock_over(env)
     with pytest.raises(resets.ResetError, match='not stood up within'):
       env.reset()
   finally:

@@ -230,7 +230,14 @@ def make_environment(
     if free_floating and torso_source is None:
       torso_source = simulation.torso_pose
   if free_floating:
-    reset_procedure = resets.make(reset, robot_config, domain, torso_source)
+    # On the simulated robot a manual reset's person is simulated too.
+    reset_procedure = resets.make(
+      reset,
+      robot_config,
+      domain,
+      torso_source,
+      operator=simulation.place_at_start if virtual else None,
+    )
   motor_ids = [m.id for m in robot_config.joints + tuple(auxiliary)]
   client = dynamixel.DynamixelClient(
     device_path,

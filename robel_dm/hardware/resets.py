@@ -222,7 +222,8 @@ class ManualReset:
   terminal). With one (a D'Kitty with a tracker), the reset instead waits
   until the torso has been upright and no higher than standing for more
   than 5 checks 0.1 s apart, then 1 s more (ROBEL's ManualAuto), and fails
-  after `timeout` seconds.
+  after `timeout` seconds. On a simulated robot, `operator` is the person:
+  called once the motors are released, it puts the robot in place.
   """
 
   name = 'manual'
@@ -232,10 +233,12 @@ class ManualReset:
     wait: Callable[[str], object] = input,
     torso_source=None,
     timeout: float = _MANUAL_TIMEOUT,
+    operator: Callable[[], None] | None = None,
   ):
     self._wait = wait
     self._torso = torso_source
     self._timeout = timeout
+    self._operator = operator
 
   def __call__(self, robot, clock, joint_goals, auxiliary_goals) -> None:
     robot.set_torque(False)
@@ -243,10 +246,13 @@ class ManualReset:
       'Motors released. Put the robot near its initial pose, keep clear, and '
       'press Enter to continue.'
     )
-    if self._torso is None:
+    if self._operator is not None:
+      self._operator()
+    elif self._torso is None:
       self._wait(message)
     else:
       logging.warning('Motors released: stand the robot up.')
+    if self._torso is not None:
       self._wait_until_upright(clock)
     MoveReset()(robot, clock, joint_goals, auxiliary_goals)
 
@@ -268,7 +274,7 @@ class ManualReset:
     clock.sleep_until(clock.now() + _MANUAL_SETTLE)
 
 
-def make(name, robot_config, domain: str, torso_source=None):
+def make(name, robot_config, domain: str, torso_source=None, operator=None):
   """The reset procedure `name` for a robot.
 
   Args:
@@ -277,6 +283,8 @@ def make(name, robot_config, domain: str, torso_source=None):
     robot_config: the robot's configuration (for motor groups).
     domain: 'dclaw' or 'dkitty'.
     torso_source: the D'Kitty's torso pose (for its scripted reset).
+    operator: for 'manual' on a simulated robot, the simulated person
+      (see `ManualReset`).
 
   Raises:
     ValueError: for an unknown name or one the robot does not support.
@@ -286,7 +294,7 @@ def make(name, robot_config, domain: str, torso_source=None):
   if name == 'move':
     return MoveReset()
   if name == 'manual':
-    return ManualReset(torso_source=torso_source)
+    return ManualReset(torso_source=torso_source, operator=operator)
   if name == 'scripted':
     if domain == 'dclaw':
       return DClawScriptedReset(

@@ -94,6 +94,8 @@ class SimulatedRobot:
     self._model.actuator_ctrllimited[:] = 0
     self._auxiliary_goals: dict[int, float] = {}  # dof -> goal, rad.
     self._root = task_instance.root_joint
+    # The state a person puts a fallen robot back in (`place_at_start`).
+    self._start_qpos = self._data.qpos.copy()
     # A calibrated control delay of the scene: goals take effect this many
     # physics steps after they arrive (FIFO of [steps left, actuator, goal]).
     self._delay_steps = round(
@@ -217,6 +219,21 @@ class SimulatedRobot:
     return int(self._model.jnt_qposadr[joint])
 
   # --- Free-floating robots ------------------------------------------------
+
+  def place_at_start(self) -> None:
+    """What a person does for a fallen robot: stands it on its start mark
+    in its initial pose, at rest (the scene's state after its reset).
+
+    Raises:
+      ValueError: if the robot is not free-floating.
+    """
+    if self._root is None:
+      raise ValueError('this robot has no free-floating torso to place')
+    with self._lock:
+      self._data.qpos[:] = self._start_qpos
+      self._data.qvel[:] = 0.0
+      self._data.act[:] = 0.0
+      mujoco.mj_forward(self._model, self._data)
 
   def torso_pose(self):
     """The simulated root's position, quaternion, velocity and body rates.
