@@ -21,8 +21,13 @@ control delay for the whole robot:
   damping: joint damping, N m s/rad.
   frictionloss: joint dry friction, N m.
   armature: the motor's reflected inertia added to the joint, kg m^2.
+  max_torque: the most torque the servo gives, N m (a weaker or hot motor
+    gives less); unlimited when absent.
   control_delay: seconds between a goal being sent and the servo acting on
     it (simulated in whole physics steps, below one control step).
+  sensor_noise: standard deviation of the noise on each position a servo
+    reports, rad (optional; only a virtual bus applies it, before rounding to
+    the servo's ticks).
   fit: how the values were fitted (optional, informative only).
 
 A joint may give any subset of the four parameters, and joints not listed
@@ -43,13 +48,21 @@ FORMAT = 'robel_dm-calibration'
 VERSION = 1
 # The fitted joint parameters, in file order.
 PARAMETERS = ('kp', 'damping', 'frictionloss', 'armature')
+# Every joint parameter a file may give: the fitted ones and those a person
+# sets (a weaker motor for a held-out test robot).
+JOINT_PARAMETERS = (*PARAMETERS, 'max_torque')
 # The MJCF element and attribute each parameter sets.
 _MJCF_ATTRIBUTE = {
   'kp': ('actuator', 'kp'),
   'damping': ('joint', 'damping'),
   'frictionloss': ('joint', 'frictionloss'),
   'armature': ('joint', 'armature'),
+  'max_torque': ('actuator', 'forcerange'),
 }
+
+
+# Parameters that must be above zero (the others may be zero).
+_POSITIVE = ('kp', 'max_torque')
 
 
 class CalibrationError(ValueError):
@@ -62,9 +75,11 @@ class Calibration:
 
   Attributes:
     domain: the robot, 'dclaw' or 'dkitty'.
-    joints: joint name -> {parameter name -> value} (see `PARAMETERS`).
+    joints: joint name -> {parameter name -> value} (see
+      `JOINT_PARAMETERS`).
     control_delay: goal-to-servo delay, s.
     fit: how it was fitted (free-form; not applied).
+    sensor_noise: standard deviation of reported positions' noise, rad.
     source: where it was read from (for messages).
   """
 
@@ -73,6 +88,7 @@ class Calibration:
   control_delay: float = 0.0
   fit: dict[str, Any] = dataclasses.field(default_factory=dict)
   source: str = '<memory>'
+  sensor_noise: float = 0.0
 
   def to_dict(self) -> dict[str, Any]:
     return {
@@ -80,6 +96,7 @@ class Calibration:
       'version': VERSION,
       'domain': self.domain,
       'control_delay': self.control_delay,
+      'sensor_noise': self.sensor_noise,
       'joints': self.joints,
       'fit': self.fit,
     }
@@ -123,24 +140,27 @@ def from_dict(data: Any, source: str = '<memory>') -> Calibration:
     where = f'{source}: joints.{name}'
     if not isinstance(values, dict):
       raise CalibrationError(f'{where} must be an object')
-    unknown = sorted(set(values) - set(PARAMETERS))
+    unknown = sorted(set(values) - set(JOINT_PARAMETERS))
     if unknown:
       raise CalibrationError(
         f'{where}: unknown parameters {unknown}; expected some of '
-        f'{list(PARAMETERS)}'
+        f'{list(JOINT_PARAMETERS)}'
       )
     parsed[name] = {
-      key: _number(values[key], f'{where}.{key}', 0.0, strict=key == 'kp')
-      for key in PARAMETERS
+      key: _number(values[key], f'{where}.{key}', 0.0, strict=key in _POSITIVE)
+      for key in JOINT_PARAMETERS
       if key in values
     }
   delay = _number(
     data.get('control_delay', 0.0), f'{source}: control_delay', 0.0, False
   )
+  noise = _number(
+    data.get('sensor_noise', 0.0), f'{source}: sensor_noise', 0.0, False
+  )
   fit = data.get('fit', {})
   if not isinstance(fit, dict):
     raise CalibrationError(f'{source}: "fit" must be an object')
-  return Calibration(domain, parsed, delay, fit, source)
+  return Calibration(domain, parsed, delay, fit, source, noise)
 
 
 def load(path: str | os.PathLike) -> Calibration:
@@ -215,4 +235,8 @@ def apply_to_model(
   for name, values in calibration.joints.items():
     for parameter, value in values.items():
       kind, attribute = _MJCF_ATTRIBUTE[parameter]
-      setattr(elements[name][kind], attribute, value)
+      element = elements[name][kind]
+      if parameter == 'max_torque':
+        element.forcelimited = True
+        value = (-value, value)
+      setattr(element, attribute, value)

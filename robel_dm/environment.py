@@ -172,6 +172,7 @@ class Environment(composer.Environment):
     task: composer.Task,
     physics_factory: PhysicsFactory | None = None,
     control_delay: float = 0.0,
+    calibration=None,
     **kwargs,
   ):
     """Initializes the environment.
@@ -184,6 +185,9 @@ class Environment(composer.Environment):
         acting on it, s (a calibrated servo delay; see `robel_dm.calibration`).
         The previous targets hold for this long (rounded to whole physics
         steps) into each control step.
+      calibration: the `robel_dm.calibration.Calibration` the model was
+        built with, or None (kept for what reads the simulation, e.g. a
+        virtual bus applying its sensor noise).
       **kwargs: `composer.Environment` arguments.
 
     Raises:
@@ -194,6 +198,7 @@ class Environment(composer.Environment):
     kwargs.setdefault('strip_singleton_obs_buffer_dim', True)
     self._batch_substeps = False
     self._closed = False
+    self._calibration = calibration
     substeps = task.physics_steps_per_control_step
     delay = control_delay / task.physics_timestep
     self._delay_substeps = round(delay) if 0 <= delay < substeps else -1
@@ -244,6 +249,11 @@ class Environment(composer.Environment):
       if hook.entity_hooks or hook.extra_hooks:
         return False
     return self._observation_updater.samples_last_substep_only()
+
+  @property
+  def calibration(self):
+    """The calibration the model was built with, or None."""
+    return self._calibration
 
   @property
   def control_delay(self) -> float:

@@ -283,6 +283,7 @@ def _environment(
       time_limit=time_limit,
       random_state=seed,
       control_delay=control_delay,
+      calibration=calibration,
       **(environment_kwargs or {}),
     )
   # Imported here: the hardware layer needs the optional dynamixel_sdk.

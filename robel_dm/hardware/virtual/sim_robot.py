@@ -14,6 +14,7 @@ import time
 
 from dm_control import composer
 import mujoco
+import numpy as np
 
 from robel_dm.hardware import config as config_lib
 from robel_dm.hardware.dynamixel import control_table as table
@@ -104,6 +105,10 @@ class SimulatedRobot:
     self._pending_goals: list[list] = []
     self._realtime = realtime
     self._last_wall_time = time.monotonic()
+    # A calibrated robot's position sensors are noisy (seeded: repeatable).
+    calibration = self._env.calibration
+    self._sensor_noise = calibration.sensor_noise if calibration else 0.0
+    self._noise = np.random.default_rng(0)
 
   @property
   def motor_ids(self) -> tuple[int, ...]:
@@ -160,6 +165,8 @@ class SimulatedRobot:
         motor, qpos, dof, actuator = self._motors[motor_id]
         servo = servos[motor_id]
         angle = motor.to_motor(self._data.qpos[qpos])
+        if self._sensor_noise:
+          angle += self._noise.normal(0.0, self._sensor_noise)
         velocity = self._data.qvel[dof] / motor.scale
         force = 0.0 if actuator is None else self._data.actuator_force[actuator]
         unit = table.MODELS.get(servo.model_number, ('', 2.69))[1]
