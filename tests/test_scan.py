@@ -45,7 +45,11 @@ def _run(device, answers='', **kwargs):
   out, err = io.StringIO(), io.StringIO()
   kwargs.setdefault('robot_config', DCLAW)
   code = scan.run(
-    device, answers=io.StringIO(answers), out=out, err=err, **kwargs
+    device,
+    scan.ScanOptions(**kwargs),
+    answers=io.StringIO(answers),
+    out=out,
+    err=err,
   )
   return code, out.getvalue() + err.getvalue()
 

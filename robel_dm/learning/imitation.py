@@ -7,6 +7,7 @@ ones, minimized with Adam on mini-batches (JAX, one CPU thread).
 """
 
 from collections.abc import Callable, Sequence
+import dataclasses
 from typing import Any
 
 import numpy as np
@@ -29,6 +30,32 @@ def _init(rng: np.random.Generator, sizes: Sequence[int]):
   return layers
 
 
+@dataclasses.dataclass(frozen=True)
+class FitConfig:
+  """How `fit_policy` fits a policy to demonstrations.
+
+  Attributes:
+    hidden: hidden layer sizes.
+    seed: seeds the initial weights and the batches.
+    epochs: passes over the data.
+    batch_size: transitions per gradient step.
+    learning_rate: Adam's step size.
+    every: `fit_policy` reports the policy every this many epochs (and
+      after the last).
+  """
+
+  hidden: Sequence[int]
+  seed: int
+  epochs: int
+  batch_size: int
+  learning_rate: float
+  every: int = 50
+
+
+# Reports a fit's progress: on_epoch(epoch, policy, loss).
+EpochCallback = Callable[[int, policies.NumpyPolicy, float], None]
+
+
 def fit(
   data: demos.Transitions,
   hidden: Sequence[int],
@@ -37,22 +64,46 @@ def fit(
   batch_size: int,
   learning_rate: float,
   metadata: dict[str, Any],
-  on_epoch: Callable[[int, policies.NumpyPolicy, float], None] | None = None,
+  on_epoch: EpochCallback | None = None,
   every: int = 50,
+) -> policies.NumpyPolicy:
+  """`fit_policy` with its options as arguments.
+
+  Kept for the callers in `learning.train`; new code passes a `FitConfig`
+  to `fit_policy`.
+
+  Args:
+    data: the demonstrations.
+    hidden: see `FitConfig`.
+    seed: see `FitConfig`.
+    epochs: see `FitConfig`.
+    batch_size: see `FitConfig`.
+    learning_rate: see `FitConfig`.
+    metadata: the policy's metadata (task, observation keys, ...).
+    on_epoch: see `fit_policy`.
+    every: see `FitConfig`.
+
+  Returns:
+    The fitted policy.
+  """
+  config = FitConfig(hidden, seed, epochs, batch_size, learning_rate, every)
+  return fit_policy(data, config, metadata, on_epoch)
+
+
+def fit_policy(
+  data: demos.Transitions,
+  config: FitConfig,
+  metadata: dict[str, Any],
+  on_epoch: EpochCallback | None = None,
 ) -> policies.NumpyPolicy:
   """Fits a policy to `data`.
 
   Args:
     data: the demonstrations.
-    hidden: hidden layer sizes.
-    seed: seeds the initial weights and the batches.
-    epochs: passes over the data.
-    batch_size: transitions per gradient step.
-    learning_rate: Adam's step size.
+    config: the network and the training options.
     metadata: the policy's metadata (task, observation keys, ...).
-    on_epoch: called as on_epoch(epoch, policy, loss) every `every` epochs
-      and after the last.
-    every: see on_epoch.
+    on_epoch: called as on_epoch(epoch, policy, loss) every `config.every`
+      epochs and after the last.
 
   Returns:
     The fitted policy.
@@ -62,42 +113,18 @@ def fit(
   import jax.numpy as jnp  # noqa: PLC0415
   import optax  # noqa: PLC0415
 
-  rng = np.random.default_rng(seed)
+  rng = np.random.default_rng(config.seed)
   observations = jnp.asarray(data.observations)
   targets = jnp.asarray(np.clip(data.actions, -1.0, 1.0))
-  sizes = [observations.shape[1], *hidden, targets.shape[1]]
+  sizes = [observations.shape[1], *config.hidden, targets.shape[1]]
   params = [tuple(map(jnp.asarray, layer)) for layer in _init(rng, sizes)]
-  optimizer = optax.adam(learning_rate)
+  optimizer = optax.adam(config.learning_rate)
   state = optimizer.init(params)
-
-  def forward(params, x):
-    for weight, bias in params[:-1]:
-      x = jax.nn.relu(x @ weight.T + bias)
-    weight, bias = params[-1]
-    return jnp.tanh(x @ weight.T + bias)
-
-  def loss_fn(params, x, y):
-    return jnp.mean(jnp.sum((forward(params, x) - y) ** 2, axis=-1))
-
-  @jax.jit
-  def step(params, state, x, y):
-    loss, grads = jax.value_and_grad(loss_fn)(params, x, y)
-    updates, state = optimizer.update(grads, state, params)
-    return optax.apply_updates(params, updates), state, loss
-
-  def as_policy(params):
-    return policies.NumpyPolicy(
-      [np.asarray(w) for w, _ in params],
-      [np.asarray(b) for _, b in params],
-      'relu',
-      'tanh',
-      metadata,
-    )
-
+  step = _training_step(optimizer)
   n = len(data)
-  batch = min(batch_size, n)
+  batch = min(config.batch_size, n)
   loss = float('nan')
-  for epoch in range(1, epochs + 1):
+  for epoch in range(1, config.epochs + 1):
     order = rng.permutation(n)
     losses = []
     for start in range(0, n - batch + 1, batch):
@@ -107,6 +134,48 @@ def fit(
       )
       losses.append(value)
     loss = float(np.mean(jax.device_get(losses)))
-    if on_epoch is not None and (epoch % every == 0 or epoch == epochs):
-      on_epoch(epoch, as_policy(params), loss)
-  return as_policy(params)
+    last = epoch == config.epochs
+    if on_epoch is not None and (epoch % config.every == 0 or last):
+      on_epoch(epoch, _as_policy(params, metadata), loss)
+  return _as_policy(params, metadata)
+
+
+def _forward(params, x):
+  """The network's actions for observations `x`."""
+  import jax  # noqa: PLC0415
+  import jax.numpy as jnp  # noqa: PLC0415
+
+  for weight, bias in params[:-1]:
+    x = jax.nn.relu(x @ weight.T + bias)
+  weight, bias = params[-1]
+  return jnp.tanh(x @ weight.T + bias)
+
+
+def _training_step(optimizer):
+  """One jitted gradient step of the mean squared action error:
+  step(params, state, x, y) -> (params, state, loss)."""
+  import jax  # noqa: PLC0415
+  import jax.numpy as jnp  # noqa: PLC0415
+  import optax  # noqa: PLC0415
+
+  def loss_fn(params, x, y):
+    return jnp.mean(jnp.sum((_forward(params, x) - y) ** 2, axis=-1))
+
+  @jax.jit
+  def step(params, state, x, y):
+    loss, grads = jax.value_and_grad(loss_fn)(params, x, y)
+    updates, state = optimizer.update(grads, state, params)
+    return optax.apply_updates(params, updates), state, loss
+
+  return step
+
+
+def _as_policy(params, metadata: dict[str, Any]) -> policies.NumpyPolicy:
+  """The network as a numpy policy."""
+  return policies.NumpyPolicy(
+    [np.asarray(w) for w, _ in params],
+    [np.asarray(b) for _, b in params],
+    'relu',
+    'tanh',
+    metadata,
+  )

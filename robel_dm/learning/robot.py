@@ -351,6 +351,30 @@ def train_on_robot(
       robot moves.
     RuntimeError: when the robot cannot be reset (the run is saved).
   """
+  _check_settings(config, options)
+  metadata = train_lib.metadata_of(config)
+  keys = tuple(metadata['observation_keys'])
+  output = pathlib.Path(output_dir)
+  data, recorded = _prepare_output_dir(
+    config, options, output, keys, resume=resume, overwrite=overwrite
+  )
+  run = train_lib.Run(output, config, log)
+  if resume:
+    run.load_history()
+  else:
+    run.log_path.write_text('')
+  if config.agent.kind == agents.IMITATION:
+    policy = _cloned_policy(config, data, metadata)
+    _evaluate_on_robot(config, options, output, run, policy, metadata, log)
+  else:
+    _learn_on_robot(config, options, run, metadata, data, recorded, resume)
+  return run.history
+
+
+def _check_settings(
+  config: train_lib.RunConfig, options: RobotRunOptions
+) -> None:
+  """Raises ValueError for settings a robot run cannot use."""
   config.check()
   options.check()
   if config.algo not in ROBOT_AGENTS:
@@ -361,9 +385,24 @@ def train_on_robot(
   if config.num_envs != 1:
     raise ValueError('a robot is one environment: --num_envs must be 1')
   agents.check_installed(config.agent)
-  metadata = train_lib.metadata_of(config)
-  keys = tuple(metadata['observation_keys'])
-  output = pathlib.Path(output_dir)
+
+
+def _prepare_output_dir(
+  config: train_lib.RunConfig,
+  options: RobotRunOptions,
+  output: pathlib.Path,
+  keys: tuple[str, ...],
+  *,
+  resume: bool,
+  overwrite: bool,
+) -> tuple[demos.Transitions | None, demos.Transitions | None]:
+  """Checks `output` (and a resumed run's settings), loads the
+  demonstrations and a resumed run's recording, then (only then) clears an
+  overwritten run and writes the settings.
+
+  Returns:
+    The demonstrations and the recorded transitions, each None if none.
+  """
   robot_files = (RECORDING, PROGRESS_LOG, ROBOT)
   train_lib.check_output_dir(
     output, resume, overwrite, run_files.RUN_MARKERS + robot_files
@@ -378,28 +417,34 @@ def train_on_robot(
   output.mkdir(parents=True, exist_ok=True)
   (output / train_lib.CONFIG).write_text(json.dumps(config.to_json(), indent=1))
   (output / ROBOT).write_text(json.dumps(options.to_json(), indent=1))
-  run = train_lib.Run(output, config, log)
-  if resume:
-    run.load_history()
-  else:
-    run.log_path.write_text('')
-  if config.agent.kind == agents.IMITATION:
-    from robel_dm.learning import imitation  # noqa: PLC0415
+  return data, recorded
 
-    hyper = config.agent.hyperparameters
-    policy = imitation.fit(
-      data,
-      config.layers,
-      config.seed,
-      config.steps,
-      hyper['batch_size'],
-      hyper['learning_rate'],
-      metadata,
-    )
-    _evaluate_on_robot(config, options, output, run, policy, metadata, log)
-    return run.history
+
+def _cloned_policy(config: train_lib.RunConfig, data, metadata):
+  """Behaviour cloning's policy, fitted to the demonstrations `data`."""
+  from robel_dm.learning import imitation  # noqa: PLC0415
+
+  hyper = config.agent.hyperparameters
+  fit_config = imitation.FitConfig(
+    hidden=config.layers,
+    seed=config.seed,
+    epochs=config.steps,
+    batch_size=hyper['batch_size'],
+    learning_rate=hyper['learning_rate'],
+  )
+  return imitation.fit_policy(data, fit_config, metadata)
+
+
+def _learn_on_robot(
+  config, options, run, metadata, data, recorded, resume: bool
+) -> None:
+  """Runs the learner process and the robot until the run ends, then
+  releases the robot first, stops the learner and finishes the run."""
+  output = run.output
   held = sum(len(d) for d in (data, recorded) if d is not None)
-  observation_size, action_size = _sizes(config, keys)
+  observation_size, action_size = _sizes(
+    config, tuple(metadata['observation_keys'])
+  )
   setup = learner_lib.LearnerSetup(
     algo=config.algo,
     seed=config.seed,
@@ -424,7 +469,7 @@ def train_on_robot(
       actor.steps = len(recorded)
       actor.episodes = recorded.episodes
       actor.resume_counters(output / PROGRESS_LOG)
-      log(
+      run.log(
         f'resuming at robot step {actor.steps}: {len(recorded)} recorded '
         'transitions back in the replay buffer'
       )
@@ -437,7 +482,6 @@ def train_on_robot(
         learner.close()
       finally:
         _finish(run, config, output)
-  return run.history
 
 
 def _finish(run: train_lib.Run, config, output: pathlib.Path) -> None:

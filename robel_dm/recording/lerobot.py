@@ -296,12 +296,7 @@ def export(
   directory, output = pathlib.Path(directory), pathlib.Path(output)
   if output.exists():
     raise format_lib.RecordingError(f'{output} exists; export writes a new one')
-  try:
-    info = json.loads((directory / format_lib.INFO).read_text())
-  except (OSError, ValueError) as error:
-    raise format_lib.RecordingError(
-      f'{directory} is not a readable recording ({format_lib.INFO}: {error})'
-    ) from error
+  info = _read_info(directory)
   episodes = _episodes(directory)
   keys = info.get('observation_keys')
   description = _description(directory, episodes[0].metadata['episode_index'])
@@ -315,7 +310,43 @@ def export(
   )
   write = _write_v30 if version == 'v3.0' else _write_v21
   tasks, frames = write(pa, staging, converted)
-  fps = info['fps']
+  dataset_info = _dataset_info(
+    version, info['fps'], episodes, tasks, frames, features
+  )
+  (staging / format_lib.INFO).write_text(json.dumps(dataset_info, indent=1))
+  (staging / ROBEL_DM_META).write_text(
+    json.dumps(
+      {
+        'source': str(directory),
+        'observation_keys': list(keys or ()),
+        'provenance': info.get('provenance'),
+        'robot': info.get('robot'),
+        # Units and dimension names, as the recording's files describe them
+        # (see recording.describe_columns).
+        'columns': columns,
+      },
+      indent=1,
+    )
+  )
+  os.replace(staging, output)
+  return dataset_info
+
+
+def _read_info(directory: pathlib.Path) -> dict[str, Any]:
+  """The recording's info.json."""
+  try:
+    return json.loads((directory / format_lib.INFO).read_text())
+  except (OSError, ValueError) as error:
+    raise format_lib.RecordingError(
+      f'{directory} is not a readable recording ({format_lib.INFO}: {error})'
+    ) from error
+
+
+def _dataset_info(
+  version: str, fps, episodes, tasks: dict, frames: int, features: dict
+) -> dict[str, Any]:
+  """The dataset's meta/info.json (v3.0 also gives every feature the
+  fps)."""
   dataset_info = {
     'codebase_version': version,
     'robot_type': episodes[0].metadata.get('domain'),
@@ -342,22 +373,6 @@ def export(
       total_chunks=(len(episodes) - 1) // CHUNK_SIZE + 1,
       data_path=V21_DATA_PATH,
     )
-  (staging / format_lib.INFO).write_text(json.dumps(dataset_info, indent=1))
-  (staging / ROBEL_DM_META).write_text(
-    json.dumps(
-      {
-        'source': str(directory),
-        'observation_keys': list(keys or ()),
-        'provenance': info.get('provenance'),
-        'robot': info.get('robot'),
-        # Units and dimension names, as the recording's files describe them
-        # (see recording.describe_columns).
-        'columns': columns,
-      },
-      indent=1,
-    )
-  )
-  os.replace(staging, output)
   return dataset_info
 
 

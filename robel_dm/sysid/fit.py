@@ -24,6 +24,7 @@ from scipy import optimize, sparse
 from robel_dm import calibration as calibration_lib
 from robel_dm import recording
 from robel_dm.hardware.dynamixel import control_table
+from robel_dm.sysid import standard_errors as standard_errors_lib
 from robel_dm.tasks import excitation
 
 # Residual scales: a difference of this size counts as 1, so that angles,
@@ -43,19 +44,6 @@ FRICTIONLOSS_START = 0.001
 # errors over 15%), or that ends on a search bound, or any parameter of a
 # fit that did not converge, is reported as poorly determined.
 IDENTIFIED_UNCERTAINTY = 0.075
-# Standard errors. The residuals are not independent: quantized initial
-# states and encoder, velocity and current readings leave errors that
-# persist for several steps (lag-1 autocorrelation about 0.6 on the virtual
-# bus), so the Gauss-Newton covariance s^2 (J^T J)^-1, which counts every
-# row as an independent sample, was too small (79% of true errors within 2
-# of its standard errors on 5 s D'Claw recordings). The fit uses the
-# autocorrelation-consistent sandwich (Newey-West): (J^T J)^-1 S
-# (J^T J)^-1, S summing the products of the steps' gradients J_t^T r_t up
-# to this far apart with Bartlett weights (1 - lag / (bandwidth + 1)),
-# within each episode, and a degrees-of-freedom correction
-# (`_standard_errors`). Of 0.1, 0.2 and 0.3 s, 0.2 s came closest to a
-# Gaussian's coverage on 5 s recordings (docs/sysid.md).
-HAC_BANDWIDTH = 0.2  # s
 # Finite-difference step of the Jacobian, relative to the parameter.
 DIFF_STEP = 1e-4
 
@@ -398,19 +386,31 @@ def fit(
   Raises:
     SysidError: for unknown parameters.
   """
-  unknown = sorted(set(parameters) - set(calibration_lib.PARAMETERS))
-  if unknown or not parameters:
-    raise SysidError(
-      f'parameters must be some of {calibration_lib.PARAMETERS}, got '
-      f'{list(parameters)}'
-    )
-  parameters = tuple(p for p in calibration_lib.PARAMETERS if p in parameters)
+  parameters = _checked_parameters(parameters)
   simulator = ReplaySimulator(domain)
   use_current = use_currents and all(
     t.current is not None for t in trajectories
   )
   problem = _Problem(simulator, trajectories, parameters, use_current)
   rms_before = problem.angle_rms(problem.residuals(None, 0))
+  delay, result = _least_squares(problem, fit_delay, max_evaluations)
+  return _fit_result(problem, domain, delay, result, rms_before, source)
+
+
+def _checked_parameters(parameters: tuple[str, ...]) -> tuple[str, ...]:
+  """The parameters to fit, in `calibration.PARAMETERS` order."""
+  unknown = sorted(set(parameters) - set(calibration_lib.PARAMETERS))
+  if unknown or not parameters:
+    raise SysidError(
+      f'parameters must be some of {calibration_lib.PARAMETERS}, got '
+      f'{list(parameters)}'
+    )
+  return tuple(p for p in calibration_lib.PARAMETERS if p in parameters)
+
+
+def _least_squares(problem, fit_delay: bool, max_evaluations: int):
+  """The best delay (in physics steps) and scipy's least-squares result of
+  the parameters at it."""
   x = problem.start()
   delay = _best_delay(problem, None) if fit_delay else 0
   bounds, sparsity = problem.bounds(), problem.sparsity()
@@ -435,16 +435,25 @@ def fit(
   # neighbouring delay while its (warm-started) fit is better.
   while fit_delay:
     neighbours = [
-      d for d in (delay - 1, delay + 1) if 0 <= d < simulator.substeps
+      d for d in (delay - 1, delay + 1) if 0 <= d < problem.simulator.substeps
     ]
     candidates = {d: fit_at(d, result.x) for d in neighbours}
     best = min(candidates, key=lambda d: candidates[d].cost)
     if candidates[best].cost >= result.cost:
       break
     delay, result = best, candidates[best]
-  x = result.x
-  fitted = problem.values(x)
-  standard_error = _standard_errors(problem, result)
+  return delay, result
+
+
+def _fit_result(
+  problem, domain: str, delay: int, result, rms_before, source
+) -> FitResult:
+  """The least-squares `result` at `delay`, how well the recordings
+  determine each value, written up as a calibration and a `FitResult`."""
+  simulator, parameters = problem.simulator, problem.parameters
+  trajectories = problem.trajectories
+  fitted = problem.values(result.x)
+  standard_error = standard_errors_lib.standard_errors(problem, result)
   uncertainty = {
     name: _relative(name, standard_error[name], fitted[name])
     for name in parameters
@@ -452,7 +461,7 @@ def fit(
   rms_after = problem.angle_rms(result.fun)
   names = simulator.joint_names
   poorly_determined = _poorly_determined(
-    problem, fitted, uncertainty, bounds, converged=result.status > 0
+    problem, fitted, uncertainty, problem.bounds(), converged=result.status > 0
   )
   control_delay = delay * simulator.timestep
   calibration = calibration_lib.Calibration(
@@ -466,7 +475,7 @@ def fit(
       **(source or {}),
       'episodes': len(trajectories),
       'steps': int(sum(len(t.targets) - 1 for t in trajectories)),
-      'used_currents': use_current,
+      'used_currents': problem.use_current,
       'rms_angle_error_before': rms_before.tolist(),
       'rms_angle_error_after': rms_after.tolist(),
       'standard_error': {n: _json(e) for n, e in standard_error.items()},
@@ -523,66 +532,6 @@ def _poorly_determined(
         continue
       reasons[f'{joint}.{name}'] = reason
   return reasons
-
-
-def _step_gradients(problem, result) -> np.ndarray:
-  """Each step's share J_t^T r_t of the cost's gradient, (steps, params)."""
-  jacobian = sparse.csr_matrix(result.jac)
-  weighted = jacobian.multiply(result.fun[:, None]).tocsr()
-  rows = problem.components * problem.joints
-  steps = problem.rows // rows
-  # Sums each step's rows (angle, velocity, current of every joint).
-  summing = sparse.csr_matrix(
-    (np.ones(problem.rows), (np.arange(problem.rows) // rows,
-                             np.arange(problem.rows))),
-    shape=(steps, problem.rows),
-  )  # fmt: skip
-  return np.asarray((summing @ weighted).todense())
-
-
-def _hac(gradients: np.ndarray, lengths, bandwidth: int) -> np.ndarray:
-  """Newey-West: the covariance of the summed gradients, counting their
-  correlation up to `bandwidth` steps apart (Bartlett weights), within
-  each episode."""
-  meat = np.zeros((gradients.shape[1],) * 2)
-  start = 0
-  for length in lengths:
-    g = gradients[start : start + length]
-    start += length
-    meat += g.T @ g
-    for lag in range(1, min(bandwidth, length - 1) + 1):
-      product = g[:-lag].T @ g[lag:]
-      meat += (1 - lag / (bandwidth + 1)) * (product + product.T)
-  return meat
-
-
-def _standard_errors(problem, result) -> dict[str, np.ndarray]:
-  """Absolute standard errors, parameter -> per joint; inf where the
-  recordings are too short to estimate one (see HAC_BANDWIDTH)."""
-  jacobian = result.jac
-  jacobian = jacobian.toarray() if sparse.issparse(jacobian) else jacobian
-  bread = np.linalg.pinv(jacobian.T @ jacobian)
-  lengths = [len(t.targets) - 1 for t in problem.trajectories]
-  timestep = problem.simulator.substeps * problem.simulator.timestep
-  bandwidth = max(1, round(HAC_BANDWIDTH / timestep))
-  meat = _hac(_step_gradients(problem, result), lengths, bandwidth)
-  variance = np.clip(np.diag(bread @ meat @ bread), 0, None)
-  # Degrees of freedom: the Bartlett weights sum to bandwidth + 1 steps, so
-  # the steps hold about sum(lengths) / (bandwidth + 1) independent
-  # stretches, and the p parameters of a chain were fitted to them; as
-  # s^2 divides by n - p, the variance is divided by 1 - p (bandwidth + 1) /
-  # sum(lengths). With p (bandwidth + 1) steps or fewer nothing is left to
-  # estimate it.
-  chains = problem.simulator.chains
-  per_chain = np.bincount(chains) * len(problem.parameters)
-  fitted_share = (
-    per_chain[np.tile(chains, len(problem.parameters))]
-    * (bandwidth + 1)
-    / sum(lengths)
-  )
-  with np.errstate(divide='ignore'):
-    variance = np.where(fitted_share < 1, variance / (1 - fitted_share), np.inf)
-  return problem.values(np.sqrt(variance))
 
 
 def _relative(name: str, error: np.ndarray, value: np.ndarray) -> np.ndarray:

@@ -183,6 +183,22 @@ class DynamixelClient(register_access.RegisterAccess):
       return
     if shutdown.exit_signal() is not None:
       raise self._not_connected()
+    port = self._open_port()
+    self._port = port
+    self._packets = register_access.packet_handler()
+    self._probing = not check_motors
+    self._bus_silent = False
+    shutdown.register(self, self._release_at_exit)
+    if self._probing:
+      return
+    try:
+      self._check_motors(port)
+    except BaseException:
+      self._close_port()
+      raise
+
+  def _open_port(self):
+    """Opens, sets up and locks the port (closed again if that fails)."""
     port = port_lib.port_handler_class()(self._device_path)
     try:
       opened = port.openPort()
@@ -201,50 +217,44 @@ class DynamixelClient(register_access.RegisterAccess):
     except BaseException:
       port.closePort()
       raise
-    self._port = port
-    self._packets = register_access.packet_handler()
-    self._probing = not check_motors
-    self._bus_silent = False
-    shutdown.register(self, self._release_at_exit)
-    if self._probing:
-      return
-    try:
-      failed = {}  # Motor ID -> (result, bad reply) of its last ping.
-      for motor_id in self._ids:
-        model, result = self._ping_result(motor_id)
-        if model is None:
-          failed[motor_id] = result, self._packets.bad_reply
-        else:
-          self._models[motor_id] = model
-      if failed:
-        raise MissingMotorError(self._connect_failure(failed), failed)
-      unknown = {i: m for i, m in self._models.items() if m not in table.MODELS}
-      if unknown:
-        raise DynamixelError(
-          f'unsupported motor models (ID: model number) {unknown}; '
-          f'supported: {sorted(table.MODELS)}',
-          unknown,
-        )
-      self._current_units[:] = [
-        table.MODELS[self._models[i]][1] for i in self._ids
-      ]
-      self._state_reader = sdk.GroupSyncRead(
-        port,
-        self._packets,
-        table.STATE_BLOCK_ADDRESS,
-        table.STATE_BLOCK_SIZE,
+    return port
+
+  def _check_motors(self, port) -> None:
+    """Pings every motor, requires supported models, and sets up the
+    group read of their state and the group write of their goals."""
+    failed = {}  # Motor ID -> (result, bad reply) of its last ping.
+    for motor_id in self._ids:
+      model, result = self._ping_result(motor_id)
+      if model is None:
+        failed[motor_id] = result, self._packets.bad_reply
+      else:
+        self._models[motor_id] = model
+    if failed:
+      raise MissingMotorError(self._connect_failure(failed), failed)
+    unknown = {i: m for i, m in self._models.items() if m not in table.MODELS}
+    if unknown:
+      raise DynamixelError(
+        f'unsupported motor models (ID: model number) {unknown}; '
+        f'supported: {sorted(table.MODELS)}',
+        unknown,
       )
-      for motor_id in self._ids:
-        self._state_reader.addParam(motor_id)
-      self._goal_writer = sdk.GroupSyncWrite(
-        port,
-        self._packets,
-        table.GOAL_POSITION.address,
-        table.GOAL_POSITION.size,
-      )
-    except BaseException:
-      self._close_port()
-      raise
+    self._current_units[:] = [
+      table.MODELS[self._models[i]][1] for i in self._ids
+    ]
+    self._state_reader = sdk.GroupSyncRead(
+      port,
+      self._packets,
+      table.STATE_BLOCK_ADDRESS,
+      table.STATE_BLOCK_SIZE,
+    )
+    for motor_id in self._ids:
+      self._state_reader.addParam(motor_id)
+    self._goal_writer = sdk.GroupSyncWrite(
+      port,
+      self._packets,
+      table.GOAL_POSITION.address,
+      table.GOAL_POSITION.size,
+    )
 
   def _follow_bus_progress(self, port) -> None:
     """Makes the port wait for a virtual bus that is behind: its count of

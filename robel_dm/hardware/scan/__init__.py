@@ -28,7 +28,13 @@ from robel_dm.hardware.scan.checks import (
   label,
   problems,
 )
-from robel_dm.hardware.scan.cli import UsageError, load_config, parse_ids, run
+from robel_dm.hardware.scan.cli import (
+  ScanOptions,
+  UsageError,
+  load_config,
+  parse_ids,
+  run,
+)
 from robel_dm.hardware.scan.fixes import (
   RECOMMENDED,
   FixResult,
@@ -67,6 +73,7 @@ __all__ = [
   'FixResult',
   'MotorReport',
   'Problem',
+  'ScanOptions',
   'UsageError',
   'Write',
   'apply_fixes',
