@@ -10,7 +10,7 @@ the wall times and their ratio.
 import argparse
 import time
 
-from robel_dm import evaluate
+from robel_dm import evaluation
 
 
 def main() -> None:
@@ -25,10 +25,10 @@ def main() -> None:
   results = {}
   for workers in (1, args.workers):
     start = time.perf_counter()
-    results[workers] = evaluate.evaluate(
+    results[workers] = evaluation.evaluate(evaluation.EvalConfig(
       args.domain, args.task, args.episodes, policy=args.policy, seed=0,
       workers=workers,
-    )  # fmt: skip
+    ))  # fmt: skip
     timings[workers] = time.perf_counter() - start
   same = results[1]['records'] == results[args.workers]['records']
   print(

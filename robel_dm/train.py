@@ -117,8 +117,8 @@ def _define_flags() -> None:
   )
 
 
-# Flags of a run on a robot beyond the robot itself (evaluate's
-# ROBOT_OPTION_FLAGS).
+# Flags of a run on a robot beyond the robot itself (the evaluation
+# command's ROBOT_OPTION_FLAGS).
 _ROBOT_RUN_FLAGS = ('dynamics', 'hours', 'max_violations', 'reset_attempts',
                     'updates_per_step', 'wait_for_learner')  # fmt: skip
 
@@ -132,7 +132,7 @@ def main(argv):
   if not FLAGS.output_dir:
     raise app.UsageError('--output_dir is required')
   os.environ.setdefault('MUJOCO_GL', 'egl')
-  from robel_dm import evaluate, task_args  # noqa: PLC0415
+  from robel_dm.evaluation import cli, task_args  # noqa: PLC0415
 
   try:
     from robel_dm.learning import run_config  # noqa: PLC0415
@@ -157,7 +157,7 @@ def main(argv):
       from_recording=tuple(FLAGS.from_recording),
     )
     log = lambda line: print(line, flush=True)  # noqa: E731
-    robot_options = evaluate.robot_options(FLAGS)
+    robot_options = cli.robot_options(FLAGS)
     if robot_options is not None:
       from robel_dm.learning import robot  # noqa: PLC0415
 

@@ -82,10 +82,10 @@ def evaluate_flags():
   """The evaluate command's flags, defined for one test module only."""
   from absl import flags  # noqa: PLC0415
 
-  from robel_dm import evaluate  # noqa: PLC0415
+  from robel_dm.evaluation import cli  # noqa: PLC0415
 
   before = set(flags.FLAGS)
-  evaluate._define_flags()
+  cli.define_flags()
   yield
   flags.FLAGS.unparse_flags()
   for name in set(flags.FLAGS) - before:

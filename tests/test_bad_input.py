@@ -16,7 +16,8 @@ from absl import flags
 import numpy as np
 import pytest
 
-from robel_dm import cli_checks, evaluate, policies, result_table
+from robel_dm import policies
+from robel_dm.evaluation import checks, cli, table
 from robel_dm.hardware.tracking import spec as tracker_spec
 
 FLAGS = flags.FLAGS
@@ -32,7 +33,7 @@ def run_main(evaluate_flags, capsys):
   def run(*argv):
     FLAGS.unparse_flags()
     FLAGS(['evaluate', *argv])
-    code = evaluate.main(['evaluate'])
+    code = cli.main(['evaluate'])
     out, err = capsys.readouterr()
     return code, out, err
 
@@ -251,12 +252,12 @@ def test_a_device_output_is_refused(device):
   if not os.path.exists(device):
     pytest.skip(f'no {device}')
   with pytest.raises(ValueError, match=f'--output: {device} is a device'):
-    cli_checks.check_output(device)
+    checks.check_output(device)
 
 
 def test_an_output_path_naming_a_folder_is_refused(tmp_path):
   with pytest.raises(ValueError, match='names a folder'):
-    cli_checks.check_output(f'{tmp_path}/results/')
+    checks.check_output(f'{tmp_path}/results/')
 
 
 class _FullDisk:
@@ -308,7 +309,7 @@ def test_a_failed_write_is_one_line_and_keeps_the_finished_episodes(
   saved = json.loads(output.read_text())  # Whole, as saved after episode 0.
   assert saved['episodes'] == len(saved['records']) == 1
   rows = [line for line in out.splitlines() if line[:7].strip().isdigit()]
-  assert rows == [result_table.format_row(0, saved['records'][0])]
+  assert rows == [table.format_row(0, saved['records'][0])]
   assert [p.name for p in tmp_path.iterdir()] == ['results.json']
 
 
@@ -316,7 +317,7 @@ def test_the_json_writer_keeps_the_previous_file_when_a_write_fails(
   monkeypatch, tmp_path
 ):
   path = tmp_path / 'results.json'
-  cli_checks.write_json(str(path), {'episodes': 1})
+  checks.write_json(str(path), {'episodes': 1})
   real_open = open
   monkeypatch.setattr(
     builtins,
@@ -324,7 +325,7 @@ def test_the_json_writer_keeps_the_previous_file_when_a_write_fails(
     lambda *args, **kwargs: _FullDisk(real_open(*args, **kwargs)),
   )
   with pytest.raises(OSError, match='No space left'):
-    cli_checks.write_json(str(path), {'episodes': 2})
+    checks.write_json(str(path), {'episodes': 2})
   monkeypatch.undo()
   assert json.loads(path.read_text()) == {'episodes': 1}
   assert [p.name for p in tmp_path.iterdir()] == ['results.json']  # No debris.
@@ -427,7 +428,7 @@ def test_ctrl_c_after_a_row_is_printed_finds_it_saved(
       printed.append(text)
       raise KeyboardInterrupt
 
-  monkeypatch.setattr(evaluate, 'print', print_then_interrupt, raising=False)
+  monkeypatch.setattr(cli, 'print', print_then_interrupt, raising=False)
   output = tmp_path / 'results.json'
   code, _, _ = run_main(
     '--policy=zero', '--task=pose_fixed', '--episodes=2',
@@ -436,7 +437,7 @@ def test_ctrl_c_after_a_row_is_printed_finds_it_saved(
   assert code == 130
   assert len(printed) == 1
   saved = json.loads(output.read_text())
-  rows = [result_table.format_row(i, r) for i, r in enumerate(saved['records'])]
+  rows = [table.format_row(i, r) for i, r in enumerate(saved['records'])]
   assert printed == rows[: len(printed)]
 
 

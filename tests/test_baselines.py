@@ -10,7 +10,8 @@ import pytest
 
 pytest.importorskip('sbx')
 
-from robel_dm import suite, task_args  # noqa: E402
+from robel_dm import suite  # noqa: E402
+from robel_dm.evaluation import task_args  # noqa: E402
 from robel_dm.learning import agents, baselines, train  # noqa: E402
 from robel_dm.learning.baselines import (  # noqa: E402
   cli,
@@ -120,15 +121,15 @@ def sandbox(tmp_path, monkeypatch):
 
 
 def test_a_run_ends_with_validation_then_one_test_reading(sandbox, monkeypatch):
-  from robel_dm import evaluate  # noqa: PLC0415
+  from robel_dm import evaluation  # noqa: PLC0415
 
-  real, seeds = evaluate.evaluate, []
+  real, seeds = evaluation.evaluate, []
 
-  def spy(*args, **kwargs):
-    seeds.append(kwargs['seed'])
-    return real(*args, **kwargs)
+  def spy(config):
+    seeds.append(config.seed)
+    return real(config)
 
-  monkeypatch.setattr(evaluate, 'evaluate', spy)
+  monkeypatch.setattr(evaluation, 'evaluate', spy)
   run = baselines.Run('dclaw', 'pose_random', 'sac', 0)
   record = baselines.train_run(run, log=lambda line: None)
   assert set(record) >= FIELDS

@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from robel_dm import evaluate, policies
+from robel_dm import evaluation, policies
 
 gymnasium = pytest.importorskip('gymnasium')
 sb3 = pytest.importorskip('stable_baselines3')
@@ -76,7 +76,9 @@ def test_converted_policy_acts_as_the_model(tmp_path, capsys, algo):
   )
   expected, _ = model.predict(observations, deterministic=True)
   np.testing.assert_allclose(policy.act(observations), expected, atol=1e-5)
-  results = evaluate.evaluate('dclaw', 'pose_fixed', 1, policy=policy)
+  results = evaluation.evaluate(
+    evaluation.EvalConfig('dclaw', 'pose_fixed', 1, policy=policy)
+  )
   assert len(results['records']) == 1
 
 
@@ -155,7 +157,9 @@ def test_actions_that_differ_are_refused(tmp_path, capsys, monkeypatch):
 def test_evaluate_names_the_conversion_for_a_zip(tmp_path):
   path = _model(tmp_path, 'sac')
   with pytest.raises(ValueError, match='robel_dm.learning.convert') as error:
-    evaluate.evaluate('dclaw', 'pose_fixed', 1, policy=str(path))
+    evaluation.evaluate(
+      evaluation.EvalConfig('dclaw', 'pose_fixed', 1, policy=str(path))
+    )
   assert f'--model={path} --algo=ALGO --domain=dclaw' in str(error.value)
   result = subprocess.run(
     [

@@ -11,12 +11,15 @@ import child_signals
 import numpy as np
 import pytest
 
-from robel_dm import assets, evaluate, policies, suite, task_args
+from robel_dm import assets, evaluation, policies, suite, video
+from robel_dm.evaluation import task_args
 
 
 @pytest.mark.parametrize('task', ['pose_fixed', 'pose_random'])
 def test_reference_controller_solves_pose(task):
-  results = evaluate.evaluate('dclaw', task, episodes=20, policy='reference')
+  results = evaluation.evaluate(
+    evaluation.EvalConfig('dclaw', task, episodes=20, policy='reference')
+  )
   assert results['success_rate'] >= 0.9
   assert results['mean_score'] > 0.7
   # It moves the joints slower than the velocity safety limit.
@@ -24,8 +27,10 @@ def test_reference_controller_solves_pose(task):
 
 
 def test_reference_controller_makes_the_dkitty_stand():
-  results = evaluate.evaluate(
-    'dkitty', 'stand_fixed', episodes=20, policy='reference'
+  results = evaluation.evaluate(
+    evaluation.EvalConfig(
+      'dkitty', 'stand_fixed', episodes=20, policy='reference'
+    )
   )
   assert results['episodes'] == len(results['records']) == 20
   assert results['success_rate'] >= 0.9
@@ -41,8 +46,8 @@ def test_reference_controller_makes_the_dkitty_stand():
 )
 def test_metrics_match_a_manual_rollout(domain, task):
   seed = 3
-  results = evaluate.evaluate(
-    domain, task, episodes=2, policy='zero', seed=seed
+  results = evaluation.evaluate(
+    evaluation.EvalConfig(domain, task, episodes=2, policy='zero', seed=seed)
   )
   env = suite.load(domain, task, seed=seed)
   zeros = np.zeros(env.action_spec().shape)
@@ -272,15 +277,15 @@ def test_a_baseline_sweep_skips_tasks_without_a_shipped_policy(tmp_path):
 def test_only_the_chosen_episodes_are_filmed(tmp_path, monkeypatch):
   frames = []
   monkeypatch.setattr(
-    evaluate.video, 'render',
+    video, 'render',
     lambda env, camera, size=(4, 4): frames.append(camera) or np.zeros(
       (240, 320, 3), np.uint8),
   )  # fmt: skip
   lines = []
-  results = evaluate.evaluate(
+  results = evaluation.evaluate(evaluation.EvalConfig(
     'dclaw', 'pose_fixed', 3, policy='zero', video_dir=str(tmp_path),
     video_episodes=[1], log=lines.append,
-  )  # fmt: skip
+  ))  # fmt: skip
   assert sorted(p.name for p in tmp_path.iterdir()) == [
     'dclaw_pose_fixed_0001.mp4'
   ]
@@ -306,9 +311,13 @@ def test_bad_video_episodes_are_refused_in_one_line(flags, message, tmp_path):
 
 @pytest.mark.parametrize('policy', ['random', 'zero'])
 def test_workers_give_the_same_episodes_as_a_serial_run(policy):
-  serial = evaluate.evaluate('dclaw', 'turn_random', 4, policy=policy, seed=7)
-  parallel = evaluate.evaluate(
-    'dclaw', 'turn_random', 4, policy=policy, seed=7, workers=2
+  serial = evaluation.evaluate(
+    evaluation.EvalConfig('dclaw', 'turn_random', 4, policy=policy, seed=7)
+  )
+  parallel = evaluation.evaluate(
+    evaluation.EvalConfig(
+      'dclaw', 'turn_random', 4, policy=policy, seed=7, workers=2
+    )
   )
   assert parallel['records'] == serial['records']
   assert parallel['success_rate'] == serial['success_rate']
@@ -316,15 +325,21 @@ def test_workers_give_the_same_episodes_as_a_serial_run(policy):
 
 def test_workers_refuse_what_they_cannot_share():
   with pytest.raises(ValueError, match='workers > 1'):
-    evaluate.evaluate(
-      'dclaw', 'pose_fixed', 2, policy=lambda t: np.zeros(9), workers=2
+    evaluation.evaluate(
+      evaluation.EvalConfig(
+        'dclaw', 'pose_fixed', 2, policy=lambda t: np.zeros(9), workers=2
+      )
     )
 
 
 def test_a_local_ray_instance_gives_the_same_episodes_as_a_serial_run():
   pytest.importorskip('ray')
-  serial = evaluate.evaluate('dclaw', 'pose_random', 3, policy='random', seed=2)
-  on_ray = evaluate.evaluate(
-    'dclaw', 'pose_random', 3, policy='random', seed=2, ray_address='local'
+  serial = evaluation.evaluate(
+    evaluation.EvalConfig('dclaw', 'pose_random', 3, policy='random', seed=2)
+  )
+  on_ray = evaluation.evaluate(
+    evaluation.EvalConfig(
+      'dclaw', 'pose_random', 3, policy='random', seed=2, ray_address='local'
+    )
   )
   assert on_ray['records'] == serial['records']

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import test_robot_safety as safety
 
-from robel_dm import evaluate, suite
+from robel_dm import evaluation, suite
 from robel_dm.hardware import config as config_lib
 from robel_dm.hardware import environment as hardware_env
 from robel_dm.hardware import virtual
@@ -461,12 +461,14 @@ def test_hardware_reset_moves_to_the_initial_pose_without_simulated_settling():
 
 
 def test_evaluation_runs_on_the_virtual_bus():
-  results = evaluate.evaluate(
-    'dclaw',
-    'pose_fixed',
-    episodes=2,
-    policy='reference',
-    robot=suite.RobotOptions('virtual'),
+  results = evaluation.evaluate(
+    evaluation.EvalConfig(
+      'dclaw',
+      'pose_fixed',
+      episodes=2,
+      policy='reference',
+      robot=suite.RobotOptions('virtual'),
+    )
   )
   assert results['device_path'] == 'virtual'
   assert results['success_rate'] == 1.0

@@ -14,7 +14,7 @@ from scipy import stats
 gymnasium = pytest.importorskip('gymnasium')
 from gymnasium.utils import env_checker  # noqa: E402
 
-from robel_dm import assets, evaluate, policies, suite  # noqa: E402
+from robel_dm import assets, evaluation, policies, suite  # noqa: E402
 from robel_dm.learning import baselines  # noqa: E402
 from robel_dm.learning import gym as robel_gym  # noqa: E402
 
@@ -157,7 +157,9 @@ def test_numpy_policy_round_trips_and_evaluates(tmp_path):
   policy = policies.load(path)
   # Recordings name their policy by this: the run, seed included.
   assert repr(policy) == 'NumpyPolicy(sac seed 3 on dclaw/pose_fixed)'
-  results = evaluate.evaluate('dclaw', 'pose_fixed', 2, policy=str(path))
+  results = evaluation.evaluate(
+    evaluation.EvalConfig('dclaw', 'pose_fixed', 2, policy=str(path))
+  )
   assert results['episodes'] == 2
   env = suite.load('dclaw', 'pose_fixed', seed=0)
   timestep = env.reset()
@@ -168,10 +170,16 @@ def test_numpy_policy_round_trips_and_evaluates(tmp_path):
 
 def test_policy_errors_are_clear(tmp_path):
   with pytest.raises(policies.PolicyError, match='no policy file'):
-    evaluate.evaluate('dclaw', 'pose_fixed', 1, policy=str(tmp_path / 'x.npz'))
+    evaluation.evaluate(
+      evaluation.EvalConfig(
+        'dclaw', 'pose_fixed', 1, policy=str(tmp_path / 'x.npz')
+      )
+    )
   path = _tiny_policy(tmp_path)
   with pytest.raises(policies.PolicyError, match='trained on dclaw/pose_fixed'):
-    evaluate.evaluate('dclaw', 'turn_fixed', 1, policy=str(path))
+    evaluation.evaluate(
+      evaluation.EvalConfig('dclaw', 'turn_fixed', 1, policy=str(path))
+    )
   # A task with no shipped policy (the table ships one per solved task).
   unshipped = next(
     (domain, task)
@@ -179,7 +187,7 @@ def test_policy_errors_are_clear(tmp_path):
     if not (assets.baselines_dir() / f'{domain}_{task}.npz').is_file()
   )
   with pytest.raises(policies.PolicyError, match='no baseline policy'):
-    evaluate.evaluate(*unshipped, 1, policy='baseline')
+    evaluation.evaluate(evaluation.EvalConfig(*unshipped, 1, policy='baseline'))
   bad = tmp_path / 'bad.npz'
   np.savez(bad, something=np.zeros(3))
   with pytest.raises(policies.PolicyError, match='not a robel_dm policy'):
@@ -189,12 +197,14 @@ def test_policy_errors_are_clear(tmp_path):
 def test_saved_policy_runs_on_the_virtual_bus(tmp_path):
   pytest.importorskip('dynamixel_sdk')  # The hardware extra.
   path = _tiny_policy(tmp_path)
-  results = evaluate.evaluate(
-    'dclaw',
-    'pose_fixed',
-    1,
-    policy=str(path),
-    robot=suite.RobotOptions('virtual'),
+  results = evaluation.evaluate(
+    evaluation.EvalConfig(
+      'dclaw',
+      'pose_fixed',
+      1,
+      policy=str(path),
+      robot=suite.RobotOptions('virtual'),
+    )
   )
   assert results['episodes'] == 1 and results['device_path'] == 'virtual'
 
@@ -250,12 +260,14 @@ def test_shipped_baselines_reproduce_their_rows(shipped):
   row = _shipped_row(*shipped)
   assert baselines.solved(row)
   if shipped in suite.FIXED:
-    results = evaluate.evaluate(*shipped, 1, policy='baseline', seed=5_000_000)
+    results = evaluation.evaluate(
+      evaluation.EvalConfig(*shipped, 1, policy='baseline', seed=5_000_000)
+    )
     assert results['success_rate'] == 1.0
     return
   episodes = row['final_episodes']
-  results = evaluate.evaluate(
-    *shipped, episodes, policy='baseline', seed=5_000_000
+  results = evaluation.evaluate(
+    evaluation.EvalConfig(*shipped, episodes, policy='baseline', seed=5_000_000)
   )
   fresh = round(results['success_rate'] * episodes)
   recorded = round(row['success'] * episodes)
@@ -265,11 +277,13 @@ def test_shipped_baselines_reproduce_their_rows(shipped):
 
 def test_the_pose_baseline_runs_on_the_virtual_bus():
   pytest.importorskip('dynamixel_sdk')  # The hardware extra.
-  results = evaluate.evaluate(
-    'dclaw',
-    'pose_fixed',
-    1,
-    policy='baseline',
-    robot=suite.RobotOptions('virtual'),
+  results = evaluation.evaluate(
+    evaluation.EvalConfig(
+      'dclaw',
+      'pose_fixed',
+      1,
+      policy='baseline',
+      robot=suite.RobotOptions('virtual'),
+    )
   )
   assert results['success_rate'] == 1.0

@@ -17,7 +17,7 @@ pa = pytest.importorskip('pyarrow')
 import pyarrow.dataset  # noqa: E402
 import pyarrow.parquet as pq  # noqa: E402
 
-from robel_dm import evaluate, recording, suite  # noqa: E402
+from robel_dm import evaluation, recording, suite  # noqa: E402
 from robel_dm.recording import lerobot  # noqa: E402
 
 # What LeRobot 2.1's metadata loader reads from meta/info.json.
@@ -46,8 +46,10 @@ TIMESTAMP_TOLERANCE = 1e-4
 @pytest.fixture(scope='module')
 def recorded(tmp_path_factory):
   root = tmp_path_factory.mktemp('export')
-  evaluate.evaluate(
-    'dclaw', 'pose_fixed', 2, policy='random', seed=7, record=root / 'rec'
+  evaluation.evaluate(
+    evaluation.EvalConfig(
+      'dclaw', 'pose_fixed', 2, policy='random', seed=7, record=root / 'rec'
+    )
   )
   # An episode cut short: recorded, but not exported.
   env = recording.Recorder(suite.load('dclaw', 'pose_fixed'), root / 'rec')
@@ -333,7 +335,11 @@ def test_export_refuses_an_unknown_version(recorded, tmp_path):
 def test_each_state_name_locates_its_dimension(tmp_path, domain, task):
   # Names such as FFJ10 (in claw_qpos and last_action) or x (in root_pos,
   # root_euler, root_vel ...) repeated over the vector.
-  evaluate.evaluate(domain, task, 1, policy='zero', record=tmp_path / 'rec')
+  evaluation.evaluate(
+    evaluation.EvalConfig(
+      domain, task, 1, policy='zero', record=tmp_path / 'rec'
+    )
+  )
   info = lerobot.export(tmp_path / 'rec', tmp_path / 'out')
   features = info['features']
   names = features['observation.state']['names']
@@ -379,8 +385,10 @@ def test_exported_episodes_keep_their_recording_index_and_seed(
 def test_an_episode_without_a_seed_keeps_its_index(tmp_path):
   # A Recorder used without evaluate records no episode_seed: after one
   # that has it, its row says None (and the seed is not dropped).
-  evaluate.evaluate(
-    'dclaw', 'pose_fixed', 1, policy='zero', seed=7, record=tmp_path / 'rec'
+  evaluation.evaluate(
+    evaluation.EvalConfig(
+      'dclaw', 'pose_fixed', 1, policy='zero', seed=7, record=tmp_path / 'rec'
+    )
   )
   env = recording.Recorder(
     suite.load('dclaw', 'pose_fixed', time_limit=0.5),

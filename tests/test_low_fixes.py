@@ -19,7 +19,8 @@ import pytest
 import test_bad_input as bad_input
 import test_robot_safety as safety
 
-from robel_dm import evaluate, policies, suite
+from robel_dm import policies, suite
+from robel_dm.evaluation import cli
 from robel_dm.hardware.dynamixel import client as dynamixel
 from robel_dm.hardware.dynamixel import control_table as table
 from robel_dm.hardware.dynamixel import protocol
@@ -91,7 +92,7 @@ def run_main(evaluate_flags, capsys):
   def run(*argv):
     FLAGS.unparse_flags()
     FLAGS(['evaluate', *argv])
-    code = evaluate.main(['evaluate'])
+    code = cli.main(['evaluate'])
     out, err = capsys.readouterr()
     return code, out, err
 

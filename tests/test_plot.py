@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from robel_dm import evaluate, plot
+from robel_dm import evaluation, plot
 
 pytest.importorskip('matplotlib')
 
@@ -17,7 +17,9 @@ def result_files(tmp_path_factory):
   directory = tmp_path_factory.mktemp('results')
   paths = []
   for policy in ('zero', 'reference'):
-    result = evaluate.evaluate('dclaw', 'pose_fixed', 3, policy=policy)
+    result = evaluation.evaluate(
+      evaluation.EvalConfig('dclaw', 'pose_fixed', 3, policy=policy)
+    )
     path = directory / f'{policy}.json'
     path.write_text(json.dumps(result))
     paths.append(path)

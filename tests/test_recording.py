@@ -12,12 +12,14 @@ import pytest
 
 pytest.importorskip('pyarrow')
 
-from robel_dm import evaluate, policies, recording, suite  # noqa: E402
+from robel_dm import evaluation, policies, recording, suite  # noqa: E402
 
 
 def test_every_field_round_trips_in_simulation(tmp_path):
-  results = evaluate.evaluate(
-    'dkitty', 'stand_fixed', 2, policy='zero', seed=3, record=str(tmp_path)
+  results = evaluation.evaluate(
+    evaluation.EvalConfig(
+      'dkitty', 'stand_fixed', 2, policy='zero', seed=3, record=str(tmp_path)
+    )
   )
   episodes = recording.read(tmp_path)
   assert [e.metadata['complete'] for e in episodes] == [True, True]
@@ -43,7 +45,11 @@ def test_every_field_round_trips_in_simulation(tmp_path):
 def test_parquet_files_open_with_pyarrow_alone(tmp_path):
   import pyarrow.parquet as pq  # noqa: PLC0415
 
-  evaluate.evaluate('dclaw', 'pose_fixed', 1, policy='zero', record=tmp_path)
+  evaluation.evaluate(
+    evaluation.EvalConfig(
+      'dclaw', 'pose_fixed', 1, policy='zero', record=tmp_path
+    )
+  )
   (path,) = (tmp_path / 'data/chunk-000').glob('*.parquet')
   table = pq.read_table(path)
   assert {'episode_index', 'frame_index', 'timestamp', 'action',
@@ -54,10 +60,10 @@ def test_parquet_files_open_with_pyarrow_alone(tmp_path):
 
 def test_motor_state_is_recorded_on_the_virtual_bus(tmp_path):
   pytest.importorskip('dynamixel_sdk')
-  evaluate.evaluate(
+  evaluation.evaluate(evaluation.EvalConfig(
     'dclaw', 'pose_fixed', 1, policy='zero',
     robot=suite.RobotOptions('virtual'), record=str(tmp_path),
-  )  # fmt: skip
+  ))  # fmt: skip
   (episode,) = recording.read(tmp_path)
   for column in ('motor.position', 'motor.velocity', 'motor.current'):
     assert episode.steps[column].shape == (len(episode), 9)
@@ -69,13 +75,15 @@ def test_motor_state_is_recorded_on_the_virtual_bus(tmp_path):
 
 
 def test_replay_reproduces_a_simulated_episode_exactly(tmp_path):
-  evaluate.evaluate(
-    'dclaw', 'turn_random', 2, policy='random', seed=5, record=tmp_path / 'a'
+  evaluation.evaluate(
+    evaluation.EvalConfig(
+      'dclaw', 'turn_random', 2, policy='random', seed=5, record=tmp_path / 'a'
+    )
   )
-  evaluate.evaluate(
+  evaluation.evaluate(evaluation.EvalConfig(
     'dclaw', 'turn_random', 2, policy=f'replay:{tmp_path / "a"}', seed=5,
     record=tmp_path / 'b',
-  )  # fmt: skip
+  ))  # fmt: skip
   for first, again in zip(
     recording.read(tmp_path / 'a'), recording.read(tmp_path / 'b'), strict=True
   ):
@@ -83,14 +91,18 @@ def test_replay_reproduces_a_simulated_episode_exactly(tmp_path):
                 'next.reward'):  # fmt: skip
       np.testing.assert_array_equal(first.steps[key], again.steps[key])
   with pytest.raises(policies.PolicyError, match='recording .* is of'):
-    evaluate.evaluate(
-      'dclaw', 'pose_fixed', 1, policy=f'replay:{tmp_path / "a"}'
+    evaluation.evaluate(
+      evaluation.EvalConfig(
+        'dclaw', 'pose_fixed', 1, policy=f'replay:{tmp_path / "a"}'
+      )
     )
 
 
 def test_demonstrations_from_the_reference_controller_load(tmp_path):
-  evaluate.evaluate(
-    'dclaw', 'pose_random', 3, policy='reference', record=str(tmp_path)
+  evaluation.evaluate(
+    evaluation.EvalConfig(
+      'dclaw', 'pose_random', 3, policy='reference', record=str(tmp_path)
+    )
   )
   episodes = recording.read(tmp_path)
   assert len(episodes) == 3 and all(e.metadata['complete'] for e in episodes)
@@ -101,7 +113,11 @@ def test_an_unwritable_directory_fails_before_the_first_step(tmp_path):
   blocker = tmp_path / 'file'
   blocker.write_text('not a directory')
   with pytest.raises(recording.RecordingError, match='cannot write'):
-    evaluate.evaluate('dclaw', 'pose_fixed', 1, record=str(blocker / 'rec'))
+    evaluation.evaluate(
+      evaluation.EvalConfig(
+        'dclaw', 'pose_fixed', 1, record=str(blocker / 'rec')
+      )
+    )
 
 
 def test_a_full_disk_fails_before_the_first_step(tmp_path, monkeypatch):
@@ -111,7 +127,9 @@ def test_a_full_disk_fails_before_the_first_step(tmp_path, monkeypatch):
   usage = collections.namedtuple('usage', 'total used free')
   monkeypatch.setattr(shutil, 'disk_usage', lambda path: usage(1, 1, 1000))
   with pytest.raises(recording.RecordingError, match='MiB free'):
-    evaluate.evaluate('dclaw', 'pose_fixed', 1, record=str(tmp_path))
+    evaluation.evaluate(
+      evaluation.EvalConfig('dclaw', 'pose_fixed', 1, record=str(tmp_path))
+    )
 
 
 def test_kill_9_keeps_every_step_older_than_a_second(tmp_path):
@@ -158,7 +176,11 @@ while True:
 
 
 def test_the_command_line_summarizes_a_recording(tmp_path):
-  evaluate.evaluate('dclaw', 'pose_fixed', 2, policy='zero', record=tmp_path)
+  evaluation.evaluate(
+    evaluation.EvalConfig(
+      'dclaw', 'pose_fixed', 2, policy='zero', record=tmp_path
+    )
+  )
   result = subprocess.run(
     [sys.executable, '-m', 'robel_dm.recording', str(tmp_path)],
     capture_output=True, text=True, check=False,

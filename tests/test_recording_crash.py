@@ -15,7 +15,7 @@ import pytest
 
 pytest.importorskip('pyarrow')
 
-from robel_dm import evaluate, recording, suite  # noqa: E402
+from robel_dm import evaluation, recording, suite  # noqa: E402
 from robel_dm.recording import format as format_lib  # noqa: E402
 from robel_dm.tasks import base  # noqa: E402
 
@@ -180,7 +180,11 @@ def test_next_index_counts_unfinished_parquet_files(tmp_path):
 
 
 def test_a_truncated_parquet_file_costs_only_its_episode(tmp_path):
-  evaluate.evaluate('dclaw', 'pose_fixed', 3, policy='zero', record=tmp_path)
+  evaluation.evaluate(
+    evaluation.EvalConfig(
+      'dclaw', 'pose_fixed', 3, policy='zero', record=tmp_path
+    )
+  )
   path = tmp_path / format_lib.CHUNK / 'episode_000001.parquet'
   data = path.read_bytes()
   path.write_bytes(data[: len(data) // 2])
@@ -211,7 +215,11 @@ def test_an_unreadable_parquet_file_falls_back_to_its_stream(tmp_path):
 
 
 def test_a_torn_episodes_line_costs_only_its_episode(tmp_path):
-  evaluate.evaluate('dclaw', 'pose_fixed', 2, policy='zero', record=tmp_path)
+  evaluation.evaluate(
+    evaluation.EvalConfig(
+      'dclaw', 'pose_fixed', 2, policy='zero', record=tmp_path
+    )
+  )
   path = tmp_path / format_lib.EPISODES
   text = path.read_text()
   first, second = text.splitlines()
@@ -299,7 +307,11 @@ def test_every_write_the_guarantee_needs_is_fsynced(tmp_path, monkeypatch):
 
 
 def test_a_directory_of_another_task_is_refused_untouched(tmp_path):
-  evaluate.evaluate('dclaw', 'pose_fixed', 1, policy='zero', record=tmp_path)
+  evaluation.evaluate(
+    evaluation.EvalConfig(
+      'dclaw', 'pose_fixed', 1, policy='zero', record=tmp_path
+    )
+  )
   info = (tmp_path / format_lib.INFO).read_bytes()
   files = sorted(str(p) for p in tmp_path.rglob('*'))
   cases = [
@@ -328,8 +340,10 @@ def test_a_directory_of_another_task_is_refused_untouched(tmp_path):
 def test_the_summary_counts_safety_after_the_reset_as_evaluate(tmp_path):
   # D'Claw Turn starts with joints near their limits: the reset's row has
   # position violations, the steps after it none.
-  results = evaluate.evaluate(
-    'dclaw', 'turn_fixed', 2, policy='zero', seed=0, record=tmp_path
+  results = evaluation.evaluate(
+    evaluation.EvalConfig(
+      'dclaw', 'turn_fixed', 2, policy='zero', seed=0, record=tmp_path
+    )
   )
   episodes = recording.read(tmp_path)
   assert all(e.steps['observation.safety'][0].any() for e in episodes)

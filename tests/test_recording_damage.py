@@ -21,7 +21,7 @@ pa = pytest.importorskip('pyarrow')
 import pyarrow.ipc  # noqa: E402, F401
 import pyarrow.parquet as pq  # noqa: E402
 
-from robel_dm import evaluate, recording, suite  # noqa: E402
+from robel_dm import evaluation, recording, suite  # noqa: E402
 from robel_dm.recording import format as format_lib  # noqa: E402
 
 _BENCHMARKS = pathlib.Path(__file__).resolve().parents[1] / 'benchmarks'
@@ -47,8 +47,10 @@ def snapshot(tmp_path_factory):
   """Three finished D'Claw episodes and a fourth being recorded (its
   stream, one record batch per row), as a kill would leave them."""
   root = tmp_path_factory.mktemp('damage')
-  evaluate.evaluate(
-    'dclaw', 'pose_fixed', 3, policy='random', seed=0, record=root / 'rec'
+  evaluation.evaluate(
+    evaluation.EvalConfig(
+      'dclaw', 'pose_fixed', 3, policy='random', seed=0, record=root / 'rec'
+    )
   )
   with pytest.MonkeyPatch.context() as patch:
     patch.setattr(format_lib, 'FLUSH_INTERVAL', 0.0)  # A batch per row.

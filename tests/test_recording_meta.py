@@ -14,7 +14,8 @@ import pytest
 
 pytest.importorskip('pyarrow')
 
-from robel_dm import evaluate, policies, recording, suite  # noqa: E402
+from robel_dm import evaluation, policies, recording, suite  # noqa: E402
+from robel_dm.evaluation import cli  # noqa: E402
 
 FLAGS = flags.FLAGS
 _TASK = ('dclaw', 'turn_random')
@@ -27,7 +28,11 @@ _CLAW_JOINTS = ['FFJ10', 'FFJ11', 'FFJ12', 'MFJ20', 'MFJ21', 'MFJ22',
 def recorded(tmp_path_factory):
   """A recording of 2 episodes of random actions, made with seed 5."""
   directory = tmp_path_factory.mktemp('recorded')
-  evaluate.evaluate(*_TASK, 2, policy='random', seed=_SEED, record=directory)
+  evaluation.evaluate(
+    evaluation.EvalConfig(
+      *_TASK, 2, policy='random', seed=_SEED, record=directory
+    )
+  )
   return directory
 
 
@@ -40,8 +45,10 @@ def test_replay_from_the_recorded_seed_reproduces_the_episodes(
 ):
   lines = (recorded / 'meta/episodes.jsonl').read_text().splitlines()
   assert [json.loads(line)['episode_seed'] for line in lines] == [5, 6]
-  evaluate.evaluate(
-    *_TASK, 2, policy=f'replay:{recorded}', seed=_SEED, record=tmp_path
+  evaluation.evaluate(
+    evaluation.EvalConfig(
+      *_TASK, 2, policy=f'replay:{recorded}', seed=_SEED, record=tmp_path
+    )
   )
   for first, again in zip(_steps(recorded), _steps(tmp_path), strict=True):
     for key in ('action', 'observation.claw_qpos', 'next.reward'):
@@ -62,20 +69,20 @@ def test_replay_of_another_seed_or_task_is_refused_before_anything_is_built(
   recorded, built, task, task_kwargs, seed, message
 ):
   with pytest.raises(ValueError, match=message) as error:
-    evaluate.evaluate(
+    evaluation.evaluate(evaluation.EvalConfig(
       'dclaw', task, 1, policy=f'replay:{recorded}', seed=seed,
       task_kwargs=task_kwargs,
-    )  # fmt: skip
+    ))  # fmt: skip
   assert str(recorded) in str(error.value)
   assert '\n' not in str(error.value)
   assert built == []  # Nothing built, so nothing stepped (or moved).
 
 
 def test_another_seed_replays_when_allowed(recorded, tmp_path):
-  evaluate.evaluate(
+  evaluation.evaluate(evaluation.EvalConfig(
     *_TASK, 1, policy=f'replay:{recorded}', seed=_SEED + 1,
     allow_other_seed=True, record=tmp_path,
-  )  # fmt: skip
+  ))  # fmt: skip
   original, replayed = _steps(recorded)[0], _steps(tmp_path)[0]
   np.testing.assert_array_equal(original['action'], replayed['action'])
   assert not np.array_equal(
@@ -87,14 +94,20 @@ def test_each_replayed_episode_is_checked_against_its_own_reset(tmp_path):
   # Two sessions from seed 0 in one directory: both episodes were reset
   # with seed 0, where a replay from 0 resets the second with seed 1.
   for _ in range(2):
-    evaluate.evaluate(*_TASK, 1, policy='zero', seed=0, record=tmp_path)
+    evaluation.evaluate(
+      evaluation.EvalConfig(*_TASK, 1, policy='zero', seed=0, record=tmp_path)
+    )
   policies.ReplayPolicy(
     str(tmp_path), *_TASK, seed=0, episodes=1, check_seed=True
   )
   with pytest.raises(ValueError, match='episode 1 .* seed 0, not 0 \\+ 1'):
-    evaluate.evaluate(*_TASK, 2, policy=f'replay:{tmp_path}', seed=0)
+    evaluation.evaluate(
+      evaluation.EvalConfig(*_TASK, 2, policy=f'replay:{tmp_path}', seed=0)
+    )
   with pytest.raises(ValueError, match='has 2 episodes, not 3'):
-    evaluate.evaluate(*_TASK, 3, policy=f'replay:{tmp_path}', seed=0)
+    evaluation.evaluate(
+      evaluation.EvalConfig(*_TASK, 3, policy=f'replay:{tmp_path}', seed=0)
+    )
 
 
 def _record_directly(directory, metadata) -> str:
@@ -123,7 +136,9 @@ def test_a_recording_that_does_not_say_replays(tmp_path):
 
 
 def test_a_cut_short_episode_is_refused_before_the_replay_starts(tmp_path):
-  evaluate.evaluate(*_TASK, 1, policy='zero', seed=0, record=tmp_path)
+  evaluation.evaluate(
+    evaluation.EvalConfig(*_TASK, 1, policy='zero', seed=0, record=tmp_path)
+  )
   _record_directly(tmp_path, {'domain': _TASK[0], 'task': _TASK[1]})
   # It used to fail mid-episode, after the first episode had run.
   with pytest.raises(ValueError, match='episode 1 .* cut short after 1 steps'):
@@ -138,7 +153,7 @@ def test_the_command_refuses_in_one_line_unless_allowed(
           f'--policy=replay:{recorded}', '--episodes=1']  # fmt: skip
   try:
     FLAGS(argv)
-    code = evaluate.main(['evaluate'])
+    code = cli.main(['evaluate'])
     out, err = capsys.readouterr()
     assert code == 2 and not out and built == []
     assert err.strip().splitlines() == [
@@ -147,7 +162,7 @@ def test_the_command_refuses_in_one_line_unless_allowed(
     ]
     FLAGS.unparse_flags()
     FLAGS([*argv, '--allow_other_seed'])
-    assert evaluate.main(['evaluate']) == 0
+    assert cli.main(['evaluate']) == 0
     assert 'success rate' in capsys.readouterr().out
   finally:
     FLAGS.unparse_flags()
@@ -230,8 +245,10 @@ def test_a_robot_recording_describes_its_motors(tmp_path):
 def test_a_replay_is_not_split_over_workers(tmp_path):
   # Each worker would start from the recording's first episode.
   with pytest.raises(ValueError, match='not a replay'):
-    evaluate.evaluate(
-      'dclaw', 'pose_fixed', 2, policy=f'replay:{tmp_path}', workers=2
+    evaluation.evaluate(
+      evaluation.EvalConfig(
+        'dclaw', 'pose_fixed', 2, policy=f'replay:{tmp_path}', workers=2
+      )
     )
 
 

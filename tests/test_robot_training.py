@@ -346,10 +346,12 @@ def test_sigterm_says_what_was_saved_and_how_to_resume(tmp_path):
 
 def test_learning_starts_from_a_recording(tmp_path):
   # A recording made elsewhere (here: the reference controller, simulated).
-  from robel_dm import evaluate  # noqa: PLC0415
+  from robel_dm import evaluation  # noqa: PLC0415
 
-  evaluate.evaluate(
-    'dclaw', 'pose_fixed', 2, policy='reference', record=str(tmp_path / 'r')
+  evaluation.evaluate(
+    evaluation.EvalConfig(
+      'dclaw', 'pose_fixed', 2, policy='reference', record=str(tmp_path / 'r')
+    )
   )
   config = train_lib.RunConfig(
     domain='dclaw', task='pose_fixed', steps=16, eval_every=16,
@@ -467,11 +469,13 @@ def test_the_agent_learns_from_the_penalized_reward(tmp_path, monkeypatch):
 @pytest.fixture(scope='module')
 def demonstrations(tmp_path_factory):
   """Two episodes of Pose's scripted controller, recorded in simulation."""
-  from robel_dm import evaluate  # noqa: PLC0415
+  from robel_dm import evaluation  # noqa: PLC0415
 
   directory = tmp_path_factory.mktemp('demos')
-  evaluate.evaluate(
-    'dclaw', 'pose_fixed', 2, policy='reference', record=str(directory)
+  evaluation.evaluate(
+    evaluation.EvalConfig(
+      'dclaw', 'pose_fixed', 2, policy='reference', record=str(directory)
+    )
   )
   return str(directory)
 

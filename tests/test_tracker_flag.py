@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from robel_dm import evaluate, suite
+from robel_dm import evaluation, suite
 from robel_dm.hardware.tracking import natnet
 from robel_dm.hardware.tracking import spec as tracker_spec
 
@@ -60,12 +60,12 @@ def test_the_tracker_flag_reaches_a_natnet_stream_over_loopback():
   sender = threading.Thread(target=stream, daemon=True)
   sender.start()
   try:
-    results = evaluate.evaluate(
+    results = evaluation.evaluate(evaluation.EvalConfig(
       'dkitty', 'stand_fixed', 1, policy='zero',
       robot=suite.RobotOptions('virtual', tracker=(
         f'natnet:127.0.0.1:{command_port},rigid_body=1,multicast=unicast,'
         f'data_port={data_port},local=127.0.0.1,y_up=false')),
-    )  # fmt: skip
+    ))  # fmt: skip
   finally:
     stop.set()
     sender.join(5)

@@ -10,7 +10,7 @@ import pytest
 pytest.importorskip('stable_baselines3')
 pytest.importorskip('sbx')
 
-from robel_dm import evaluate, policies  # noqa: E402
+from robel_dm import evaluation, policies  # noqa: E402
 from robel_dm.learning import agents, demos  # noqa: E402
 from robel_dm.learning import train as learning  # noqa: E402
 
@@ -84,12 +84,12 @@ def test_the_best_evaluated_policy_is_kept(tmp_path, monkeypatch):
 def test_evaluations_use_seeds_no_training_episode_uses(monkeypatch):
   seen = {}
 
-  def fake(domain, task, episodes, policy, seed, task_kwargs):
-    seen['seed'] = seed
+  def fake(config):
+    seen['seed'] = config.seed
     return {'success_rate': 0, 'mean_score': 0, 'mean_return': 0,
             'safety': {}}  # fmt: skip
 
-  monkeypatch.setattr(evaluate, 'evaluate', fake)
+  monkeypatch.setattr(evaluation, 'evaluate', fake)
   config = _config(seed=3, num_envs=4)
   learning.evaluate_policy(None, config, 50)
   training_seeds = {config.seed * 1000 + i for i in range(config.num_envs)}
@@ -192,13 +192,15 @@ def test_on_policy_runs_say_they_round_up_to_whole_rollouts(tmp_path):
 def pose_demos(tmp_path_factory):
   pytest.importorskip('pyarrow')
   directory = tmp_path_factory.mktemp('demos')
-  evaluate.evaluate(
-    'dclaw',
-    'pose_fixed',
-    20,
-    policy='reference',
-    seed=0,
-    record=str(directory),
+  evaluation.evaluate(
+    evaluation.EvalConfig(
+      'dclaw',
+      'pose_fixed',
+      20,
+      policy='reference',
+      seed=0,
+      record=str(directory),
+    )
   )
   return directory
 

@@ -108,10 +108,12 @@ def test_unknown_cameras_are_named():
 
 
 def test_evaluate_writes_a_video_per_episode(tmp_path):
-  from robel_dm import evaluate  # noqa: PLC0415
+  from robel_dm import evaluation  # noqa: PLC0415
 
-  results = evaluate.evaluate(
-    'dkitty', 'stand_fixed', 2, policy='zero', video_dir=str(tmp_path)
+  results = evaluation.evaluate(
+    evaluation.EvalConfig(
+      'dkitty', 'stand_fixed', 2, policy='zero', video_dir=str(tmp_path)
+    )
   )
   paths = [record['video'] for record in results['records']]
   assert len(set(paths)) == 2

@@ -29,7 +29,8 @@ import zipfile
 
 import numpy as np
 
-from robel_dm import cli_checks, policies, task_args
+from robel_dm import policies
+from robel_dm.evaluation import checks, task_args
 from robel_dm.learning import agents, gym
 
 # Observations the actions are compared on: the first RESETS are reset
@@ -263,7 +264,7 @@ def main(argv: Sequence[str] | None = None) -> int:
   try:
     if not args.output.endswith('.npz'):
       raise ValueError(f'--output: {args.output} must end in .npz')
-    cli_checks.check_output(args.output)
+    checks.check_output(args.output)
     policy = convert(
       args.model,
       args.algo,

@@ -36,7 +36,7 @@ from typing import Any
 
 import gymnasium
 
-from robel_dm import evaluate, policies, suite
+from robel_dm import evaluation, policies, suite
 from robel_dm.learning import agents, curves, demos, replay, telemetry
 
 # A run's settings and files, by the names callers know here.
@@ -117,13 +117,15 @@ def evaluate_policy(
 ) -> dict[str, Any]:
   """ROBEL's metrics of a policy (ROBEL's reward, no penalty), on
   episodes seeded apart from every training episode."""
-  results = evaluate.evaluate(
-    config.domain,
-    config.task,
-    episodes,
-    policy=policy,
-    seed=EVAL_SEED_OFFSET + config.seed * 1000,
-    task_kwargs=config.task_kwargs,
+  results = evaluation.evaluate(
+    evaluation.EvalConfig(
+      config.domain,
+      config.task,
+      episodes,
+      policy=policy,
+      seed=EVAL_SEED_OFFSET + config.seed * 1000,
+      task_kwargs=config.task_kwargs,
+    )
   )
   return {
     'success_rate': results['success_rate'],

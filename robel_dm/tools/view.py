@@ -27,7 +27,8 @@ if os.environ['MUJOCO_GL'] == 'glfw':
 
 from absl import app, flags  # noqa: E402
 
-from robel_dm import policies, suite, task_args  # noqa: E402
+from robel_dm import policies, suite  # noqa: E402
+from robel_dm.evaluation import task_args  # noqa: E402
 
 _OFFSCREEN_BACKENDS = ('egl', 'osmesa')
 

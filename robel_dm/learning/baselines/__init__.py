@@ -246,7 +246,7 @@ def _confirmed(run: Run, log=print) -> bool:
   one again until a reading passes would only select a lucky reading, so
   a run whose best policy was checked trains on until it has a new one
   (or to its budget)."""
-  from robel_dm import evaluate, policies  # noqa: PLC0415
+  from robel_dm import evaluation, policies  # noqa: PLC0415
   from robel_dm.learning import train  # noqa: PLC0415
 
   path = run.directory / CONFIRMATIONS
@@ -270,13 +270,15 @@ def _confirmed(run: Run, log=print) -> bool:
   earlier = len(checked)
   episodes = PLAN['confirm_episodes_random']
   seed = CONFIRM_SEED_OFFSET + run.seed * 10_000 + earlier * episodes
-  results = evaluate.evaluate(
-    run.domain,
-    run.task,
-    episodes,
-    policy=policies.load(run.directory / train.BEST_POLICY),
-    seed=seed,
-    task_kwargs=run.task_kwargs,
+  results = evaluation.evaluate(
+    evaluation.EvalConfig(
+      run.domain,
+      run.task,
+      episodes,
+      policy=policies.load(run.directory / train.BEST_POLICY),
+      seed=seed,
+      task_kwargs=run.task_kwargs,
+    )
   )
   rate = results['success_rate']
   line = {
@@ -367,7 +369,7 @@ def _read(run: Run, policy, which: str) -> None:
   VALIDATION or TEST. A Fixed task has one episode, the same whatever its
   seed (the simulation and the policy's mean action are deterministic):
   its reading is exact."""
-  from robel_dm import evaluate  # noqa: PLC0415
+  from robel_dm import evaluation  # noqa: PLC0415
 
   offset, episodes = {
     VALIDATION: (VALIDATION_SEED_OFFSET, PLAN['validation_episodes_random']),
@@ -375,13 +377,15 @@ def _read(run: Run, policy, which: str) -> None:
   }[which]
   episodes = 1 if run.fixed else episodes
   seed = offset + run.seed * 10_000
-  results = evaluate.evaluate(
-    run.domain,
-    run.task,
-    episodes,
-    policy=policy,
-    seed=seed,
-    task_kwargs=run.task_kwargs,
+  results = evaluation.evaluate(
+    evaluation.EvalConfig(
+      run.domain,
+      run.task,
+      episodes,
+      policy=policy,
+      seed=seed,
+      task_kwargs=run.task_kwargs,
+    )
   )
   success = results['success_rate']
   reading = {
@@ -559,12 +563,12 @@ def train_ray(address: str, pattern: str | None) -> list[dict]:
   """Every selected run as a Ray task (one CPU each); the records merged
   into docs/baselines.json as they end. `address` 'local' starts a Ray
   instance on this machine for the call."""
-  from robel_dm import parallel  # noqa: PLC0415
+  from robel_dm.evaluation import workers  # noqa: PLC0415
 
   chosen = [
     run for run in select(pattern) if not done(run) or not recorded(run)
   ]
-  with parallel.ray_session(address) as ray:
+  with workers.ray_session(address) as ray:
     remote = ray.remote(num_cpus=1)(_remote_train_run)
     pending = {remote.remote(run, PLAN, RUNS_DIR): run for run in chosen}
     records = []

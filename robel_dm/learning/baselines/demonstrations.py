@@ -12,7 +12,7 @@ import hashlib
 import pathlib
 import shutil
 
-from robel_dm import task_args
+from robel_dm.evaluation import task_args
 from robel_dm.learning import baselines
 from robel_dm.learning.baselines import selection
 
@@ -38,7 +38,7 @@ def _source(run: baselines.Run) -> str | None:
 def record(run: baselines.Run, log=print) -> str | None:
   """The demonstration recording for `run` (made if needed, and made again
   if its source changed), or None if nothing can demonstrate the task yet."""
-  from robel_dm import evaluate, policies  # noqa: PLC0415
+  from robel_dm import evaluation, policies  # noqa: PLC0415
 
   source = _source(run)
   if source is None:
@@ -59,13 +59,15 @@ def record(run: baselines.Run, log=print) -> str | None:
   shutil.rmtree(directory, ignore_errors=True)
   directory.parent.mkdir(parents=True, exist_ok=True)
   log(f'demonstrations of {run.domain}/{run.task} by {source}')
-  evaluate.evaluate(
-    run.domain,
-    run.task,
-    demo_episodes,
-    policy=source if source == 'reference' else policies.load(source),
-    seed=baselines.DEMO_SEED_OFFSET,
-    record=str(directory),
+  evaluation.evaluate(
+    evaluation.EvalConfig(
+      run.domain,
+      run.task,
+      demo_episodes,
+      policy=source if source == 'reference' else policies.load(source),
+      seed=baselines.DEMO_SEED_OFFSET,
+      record=str(directory),
+    )
   )
   made_by.write_text(identity)
   return str(directory)

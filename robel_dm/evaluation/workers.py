@@ -2,7 +2,7 @@
 
 Each episode runs from a reset seeded `seed + i` in a worker that keeps its
 environment and policy between episodes, so the records equal those of a
-serial run (`evaluate.evaluate(workers=...)`, `ray_address=...`).
+serial run (`EvalConfig(workers=...)`, `ray_address=...`).
 """
 
 from collections.abc import Iterator
@@ -13,14 +13,22 @@ import multiprocessing
 import os
 from typing import Any
 
-from robel_dm import policies, rollout, suite
+from robel_dm import policies, suite
+from robel_dm.evaluation import episodes
 
 # Each worker process keeps its environments and policies between episodes.
 _WORKER_CACHE: dict = {}
 
 
-def worker_episode(domain, task, task_kwargs, policy, episode_seed):
-  """One episode in a worker process (see `evaluate(workers=...)`)."""
+def worker_episode(
+  domain: str,
+  task: str,
+  task_kwargs: dict[str, Any] | None,
+  policy: str,
+  episode_seed: int,
+) -> tuple[dict[str, Any], int, float]:
+  """One episode in a worker process: its (record, steps, seconds), as
+  `episodes.run_episode` returns them."""
   key = (domain, task, json.dumps(task_kwargs or {}, sort_keys=True), policy)
   if key not in _WORKER_CACHE:
     env = suite.load(domain, task, seed=episode_seed, task_kwargs=task_kwargs)
@@ -31,11 +39,20 @@ def worker_episode(domain, task, task_kwargs, policy, episode_seed):
   env, act = _WORKER_CACHE[key]
   if policy == 'random':
     act = policies.make_policy(policy, env, episode_seed)
-  return rollout.run_episode(env, act, episode_seed)
+  return episodes.run_episode(env, act, episode_seed)
 
 
-def local_episodes(domain, task, task_kwargs, policy, seed, count, workers):
-  """Yields the episodes' (record, steps, seconds), in episode order."""
+def local_episodes(
+  domain: str,
+  task: str,
+  task_kwargs: dict[str, Any] | None,
+  policy: str,
+  seed: int,
+  count: int,
+  workers: int,
+) -> Iterator[tuple[dict[str, Any], int, float]]:
+  """Yields the episodes' (record, steps, seconds), in episode order, from
+  `workers` local processes; episode i is reset with `seed + i`."""
   context = multiprocessing.get_context('spawn')  # MuJoCo and GL: no fork.
   with concurrent.futures.ProcessPoolExecutor(workers, context) as pool:
     futures = [
@@ -84,9 +101,18 @@ def ray_session(address: str) -> Iterator[Any]:
       ray.shutdown()
 
 
-def ray_episodes(domain, task, task_kwargs, policy, seed, count, address):
+def ray_episodes(
+  domain: str,
+  task: str,
+  task_kwargs: dict[str, Any] | None,
+  policy: str,
+  seed: int,
+  count: int,
+  address: str,
+) -> Iterator[tuple[dict[str, Any], int, float]]:
   """Yields the episodes' (record, steps, seconds) from Ray tasks, in
-  episode order (Ray from the `scale` extra)."""
+  episode order (Ray from the `scale` extra); `address` as `ray_session`
+  takes it."""
   with ray_session(address) as ray:
     remote = ray.remote(worker_episode)
     refs = [

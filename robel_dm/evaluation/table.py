@@ -1,4 +1,4 @@
-"""The plain-text table `evaluate` prints: a row per episode, a summary."""
+"""The plain-text table of an evaluation: a row per episode, a summary."""
 
 from typing import Any
 
