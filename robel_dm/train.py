@@ -42,6 +42,18 @@ def _define_flags() -> None:
   flags.DEFINE_float(
     'safety_penalty', 0.0, 'Training reward minus this per safety violation.'
   )
+  flags.DEFINE_float(
+    'safety_budget',
+    None,
+    'Learn to keep safety violations per episode (all kinds) under this '
+    'many, with a learned price per violation (SAC agents).',
+  )
+  flags.DEFINE_string(
+    'init_from',
+    None,
+    "Start from another run's networks: its folder or checkpoint.zip (SAC "
+    'agents; e.g. the Random variant for RandomDynamics).',
+  )
   flags.DEFINE_bool('resume', False, 'Continue from the checkpoint.')
   flags.DEFINE_bool(
     'overwrite',
@@ -149,6 +161,8 @@ def main(argv):
       eval_every=FLAGS.eval_every,
       eval_episodes=FLAGS.eval_episodes,
       safety_penalty=FLAGS.safety_penalty,
+      safety_budget=FLAGS.safety_budget,
+      init_from=FLAGS.init_from,
       hidden=run_config.parse_hidden(FLAGS.hidden),
       demos=tuple(FLAGS.demos),
       demo_episodes=FLAGS.demo_episodes,

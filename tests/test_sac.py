@@ -151,3 +151,39 @@ def test_compiled_updates_are_cached_for_later_runs(tmp_path):
   subprocess.run([sys.executable, '-c', program], env=env, check=True)
   cache = tmp_path / 'robel_dm' / 'jax'
   assert any(cache.iterdir()), 'no compilation was cached'
+
+
+class _Other(_Random):
+  """Another stand-in task with more observations."""
+
+  def __init__(self):
+    super().__init__()
+    self.observation_space = gymnasium.spaces.Box(-1, 1, (9,), np.float32)
+
+
+def test_a_warm_start_takes_the_networks_and_nothing_else(tmp_path):
+  import jax  # noqa: PLC0415
+  from stable_baselines3.common.vec_env import DummyVecEnv  # noqa: PLC0415
+
+  source = _model()
+  source.learn(40)
+  source.save(str(tmp_path / 'checkpoint.zip'))
+  agent = agents.get('sac')
+  env = DummyVecEnv([_Random])
+  model = agents.warm_start(agent, tmp_path / 'checkpoint.zip', env, 7, 500)
+  same = jax.tree_util.tree_map(
+    lambda a, b: bool(np.array_equal(a, b)),
+    model.policy.actor_state.params,
+    source.policy.actor_state.params,
+  )
+  assert all(jax.tree_util.tree_leaves(same))
+  assert model.num_timesteps == 0
+  assert model.replay_buffer.pos == 0 and model.replay_buffer.buffer_size == 500
+  fresh = agents.warm_start(agent, tmp_path / 'checkpoint.zip', env, 7, 500)
+  assert model.replay_rng.integers(1 << 30) == fresh.replay_rng.integers(
+    1 << 30
+  )
+  with pytest.raises(ValueError, match='[Oo]bservation spaces do not match'):
+    agents.warm_start(
+      agent, tmp_path / 'checkpoint.zip', DummyVecEnv([_Other]), 7, 500
+    )

@@ -316,3 +316,48 @@ def test_resume_refuses_a_run_built_with_other_agent_settings(tmp_path):
   (tmp_path / 'config.json').write_text(json.dumps(saved))
   with pytest.raises(ValueError, match='start a new run'):
     learning.train(config, tmp_path, resume=True, **QUIET)
+
+
+@pytest.mark.parametrize(
+  'changes, message',
+  [
+    ({'safety_budget': -1.0}, 'safety_budget must be >= 0'),
+    ({'safety_budget': float('nan')}, 'safety_budget must be >= 0'),
+    ({'safety_budget': 10.0}, 'choose one of safety_penalty'),
+    (
+      {'safety_budget': 10.0, 'safety_penalty': 0.0, 'algo': 'trpo'},
+      '--safety_budget needs a SAC agent',
+    ),
+    ({'init_from': '/nonexistent/run'}, 'no saved model there'),
+  ],
+)
+def test_bad_budget_and_start_settings_are_named(changes, message):
+  with pytest.raises(ValueError, match=message):
+    _config(**changes).check()
+
+
+def test_a_warm_start_begins_where_its_source_ended(trained_run, tmp_path):
+  source, history = trained_run
+  config = _config(init_from=str(source), steps=152, eval_every=152)
+  rows = learning.train(config, tmp_path / 'warm', **QUIET)
+  # The untrained evaluation is the source's last actor, on the same
+  # evaluation episodes.
+  assert rows[0]['env_steps'] == 0
+  assert rows[0]['mean_score'] == history[-1]['mean_score']
+  assert rows[0]['mean_return'] == history[-1]['mean_return']
+  metadata = json.loads((tmp_path / 'warm' / 'metadata.json').read_text())
+  assert metadata['init_from'] == str(source)
+
+
+def test_a_safety_budget_learns_a_price_per_violation(tmp_path):
+  config = _config(safety_penalty=0.0, safety_budget=0.0)
+  learning.train(config, tmp_path / 'safe', **QUIET)
+  from stable_baselines3.common.vec_env import DummyVecEnv  # noqa: PLC0415
+
+  env = DummyVecEnv([lambda: learning.make_env(config, 0)])
+  model = agents.load(config.agent, tmp_path / 'safe' / 'checkpoint.zip', env)
+  # Pose's random early actions break the velocity limit: over budget.
+  assert model.safety.budget == 0.0
+  assert model.safety.multiplier > 0.0
+  saved = json.loads((tmp_path / 'safe' / 'config.json').read_text())
+  assert saved['safety_budget'] == 0.0

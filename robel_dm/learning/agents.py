@@ -286,6 +286,23 @@ def load(agent: Agent, path, env):
   return _library_class(agent.library).load(str(path), env=env, device='cpu')
 
 
+def warm_start(agent: Agent, source, env, seed: int, buffer_size: int):
+  """A new model of `agent` starting from another run's networks.
+
+  The actor, the critics and the entropy coefficient come from the saved
+  model `source`; its counters, random streams and replay buffer do not:
+  the new run counts from 0, draws from `seed` and stores only its own
+  transitions.
+
+  Raises:
+    ValueError: naming the difference, if `source` was made for other
+      observations or actions than `env`'s.
+  """
+  model = load(agent, source, env)
+  model.start_over(seed, buffer_size)
+  return model
+
+
 def sac_actor_layers(model) -> list[tuple[np.ndarray, np.ndarray]]:
   """An sbx SAC actor's dense layers as (weight (out, in), bias) arrays:
   the hidden layers, then the mean, then the log-std."""

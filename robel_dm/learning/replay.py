@@ -45,5 +45,9 @@ def grow(model, size: int) -> None:
     'timeouts',
   ):
     getattr(grown, name)[:held] = getattr(buffer, name)[order]
+  violations = getattr(buffer, 'violations', None)  # Under a safety budget.
+  if violations is not None:
+    grown.violations = np.zeros_like(grown.rewards)
+    grown.violations[:held] = violations[order]
   grown.pos, grown.full = held, False
   model.replay_buffer = grown

@@ -384,6 +384,15 @@ def _check_settings(
     )
   if config.num_envs != 1:
     raise ValueError('a robot is one environment: --num_envs must be 1')
+  # The robot's learner has its own replay path: neither is wired to it.
+  for name in ('safety_budget', 'init_from'):
+    if getattr(config, name) is not None:
+      raise ValueError(
+        f'--{name} is for simulation runs; on a robot, --max_violations '
+        'ends an episode at a number of violations'
+        if name == 'safety_budget'
+        else f'--{name} is for simulation runs, not yet for a robot run'
+      )
   agents.check_installed(config.agent)
 
 

@@ -2,6 +2,7 @@
 
 from collections.abc import Sequence
 import dataclasses
+import pathlib
 from typing import Any
 
 import numpy as np
@@ -33,6 +34,9 @@ class RunConfig:
     eval_every: env steps (epochs for `bc`) between evaluations.
     eval_episodes: episodes per evaluation.
     safety_penalty: the training reward minus this per safety violation.
+    safety_budget: learn to keep safety violations per episode (all kinds
+      summed) under this many, with a learned price per violation (a
+      Lagrange multiplier; SAC agents only); None: no budget.
     hidden: hidden layer sizes; the agent's own if empty.
     demos: recording directories of demonstrations (bc, sac_demos).
     demo_episodes: how many demonstration episodes to use.
@@ -42,6 +46,10 @@ class RunConfig:
     from_recording: recordings (of this task, simulated or on a robot,
       complete episodes or not) whose every transition starts the replay
       buffer of an off-policy agent, or joins behaviour cloning's data.
+    init_from: a run folder (or its checkpoint.zip) of the same agent on
+      a task with the same observations and actions, e.g. the Random
+      variant: the run starts from its networks (SAC agents only), with a
+      replay buffer of its own.
   """
 
   domain: str
@@ -54,12 +62,14 @@ class RunConfig:
   eval_every: int = 5_000
   eval_episodes: int = 10
   safety_penalty: float = 0.0
+  safety_budget: float | None = None
   hidden: tuple[int, ...] = ()
   demos: tuple[str, ...] = ()
   demo_episodes: int = 20
   stop_at_success: float | None = None
   stop_streak: int = 1
   from_recording: tuple[str, ...] = ()
+  init_from: str | None = None
 
   @property
   def agent(self) -> agents.Agent:
@@ -85,6 +95,7 @@ class RunConfig:
       raise ValueError(
         f'safety_penalty must be >= 0, got {self.safety_penalty}'
       )
+    self._check_sac_options()
     if any(size < 1 for size in self.layers):
       raise ValueError(f'hidden sizes must be >= 1, got {self.hidden}')
     if agent.needs_demos and not (self.demos or self.from_recording):
@@ -98,6 +109,33 @@ class RunConfig:
       raise ValueError(f'--algo={self.algo} does not use --demos')
     if self.demo_episodes < 1:
       raise ValueError('demo_episodes must be >= 1')
+
+  def _check_sac_options(self) -> None:
+    sac_agent = self.agent.library == agents.SAC_JAX
+    if self.safety_budget is not None:
+      if not (self.safety_budget >= 0 and np.isfinite(self.safety_budget)):
+        raise ValueError(
+          f'safety_budget must be >= 0, got {self.safety_budget}'
+        )
+      if self.safety_penalty:
+        raise ValueError(
+          'choose one of safety_penalty (a fixed price per violation) and '
+          'safety_budget (a learned one)'
+        )
+    for name in ('safety_budget', 'init_from'):
+      if getattr(self, name) is not None and not sac_agent:
+        raise ValueError(
+          f'--{name} needs a SAC agent (sac, droq, sac_demos), not '
+          f'--algo={self.algo}'
+        )
+    if self.init_from is not None:
+      path = pathlib.Path(self.init_from)
+      checkpoint = path / 'checkpoint.zip' if path.is_dir() else path
+      if not checkpoint.is_file():
+        raise ValueError(
+          f'--init_from={self.init_from}: no saved model there (a run '
+          'folder with checkpoint.zip, or such a file)'
+        )
 
   def to_json(self) -> dict[str, Any]:
     data = dataclasses.asdict(self)

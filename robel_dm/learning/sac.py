@@ -14,6 +14,15 @@ same mathematics:
 
 Both random streams (exploration noise, replay indices) are generators of
 the model, saved with it, so a resumed run continues them.
+
+With a `SafetyConstraint`, the model maximizes the task reward while
+holding ROBEL's safety violations per episode under a budget (a
+Lagrangian relaxation): the replay buffer keeps each transition's
+violations beside its reward, a batch's rewards are the task's minus the
+current multiplier times those violations, and the multiplier rises while
+training episodes exceed the budget and falls while they stay under it.
+Relabelling at sampling time means every stored transition is priced at
+the current multiplier, not at the one it was collected under.
 """
 
 import numpy as np
@@ -22,6 +31,7 @@ from sbx.common.type_aliases import ReplayBufferSamplesNp
 from sbx.sac.policies import SACPolicy
 
 from robel_dm.learning import actor
+from robel_dm.learning.safety import SafetyConstraint, step_violations
 
 
 class NumpyActingPolicy(SACPolicy):
@@ -59,6 +69,8 @@ class SAC(sbx.SAC):
   """sbx's SAC, acting and sampling its replay buffer in numpy."""
 
   policy_aliases = {'MlpPolicy': NumpyActingPolicy}  # noqa: RUF012
+  # Set after building or loading to learn under a safety budget.
+  safety: SafetyConstraint | None = None
 
   def set_random_seed(self, seed: int | None) -> None:
     super().set_random_seed(seed)
@@ -80,6 +92,22 @@ class SAC(sbx.SAC):
       self.policy.rng = self._exploration_rng
     del self._exploration_rng
 
+  def start_over(self, seed: int, buffer_size: int) -> None:
+    """Keeps the networks and the entropy coefficient, and starts a new run
+    from them: counters at 0, random streams from `seed`, an empty replay
+    buffer of `buffer_size` transitions."""
+    self.num_timesteps = self._episode_num = self._n_updates = 0
+    self.set_random_seed(seed)
+    self.policy.rng = self._exploration_rng
+    del self._exploration_rng
+    self.replay_buffer = type(self.replay_buffer)(
+      max(buffer_size, 1),
+      self.observation_space,
+      self.action_space,
+      device='cpu',
+      n_envs=self.n_envs,
+    )
+
   def sample_replay(self, count: int) -> ReplayBufferSamplesNp:
     """`count` transitions drawn uniformly (with replacement) from the
     buffer, as SB3's `ReplayBuffer.sample` draws them."""
@@ -89,13 +117,38 @@ class SAC(sbx.SAC):
     envs = self.replay_rng.integers(0, buffer.n_envs, size=count)
     # A transition cut by the time limit is not terminal: it bootstraps.
     terminal = buffer.dones[rows, envs] * (1.0 - buffer.timeouts[rows, envs])
+    rewards = buffer.rewards[rows, envs]
+    if self.safety is not None and self.safety.multiplier:
+      rewards = (
+        rewards - self.safety.multiplier * self._violations()[rows, envs]
+      )
     return ReplayBufferSamplesNp(
       buffer.observations[rows, envs],
       buffer.actions[rows, envs],
       buffer.next_observations[rows, envs],
       terminal.astype(np.float32),
-      buffer.rewards[rows, envs].astype(np.float32),
+      rewards.astype(np.float32),
       np.full(count, self.gamma, np.float32),
+    )
+
+  def _violations(self) -> np.ndarray:
+    """The safety violations of every stored transition, kept with the
+    buffer (so that they are saved and restored with it)."""
+    buffer = self.replay_buffer
+    if getattr(buffer, 'violations', None) is None:
+      buffer.violations = np.zeros_like(buffer.rewards)
+    return buffer.violations
+
+  def _store_transition(
+    self, replay_buffer, buffer_action, new_obs, reward, dones, infos
+  ) -> None:
+    if self.safety is not None:
+      violations = step_violations(infos)
+      # Stored at the row the buffer is about to fill.
+      self._violations()[replay_buffer.pos] = violations
+      self.safety.observe(violations, np.asarray(dones, bool))
+    super()._store_transition(
+      replay_buffer, buffer_action, new_obs, reward, dones, infos
     )
 
   def train(self, gradient_steps: int, batch_size: int) -> None:
@@ -140,3 +193,5 @@ class SAC(sbx.SAC):
     self.logger.record('train/critic_loss', float(critic_loss))
     self.logger.record('train/ent_coef_loss', float(ent_coef_loss))
     self.logger.record('train/ent_coef', float(ent_coef))
+    if self.safety is not None:
+      self.logger.record('train/safety_multiplier', self.safety.multiplier)

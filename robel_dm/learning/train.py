@@ -37,7 +37,14 @@ from typing import Any
 import gymnasium
 
 from robel_dm import evaluation, policies, suite
-from robel_dm.learning import agents, curves, demos, replay, telemetry
+from robel_dm.learning import (
+  agents,
+  curves,
+  demos,
+  replay,
+  safety,
+  telemetry,
+)
 
 # A run's settings and files, by the names callers know here.
 from robel_dm.learning.run_config import RESUMABLE_CHANGES, RunConfig
@@ -109,6 +116,8 @@ def metadata_of(config: RunConfig) -> dict[str, Any]:
     'algo': config.algo,
     'seed': config.seed,
     'safety_penalty': config.safety_penalty,
+    'safety_budget': config.safety_budget,
+    'init_from': config.init_from,
   }
 
 
@@ -453,18 +462,9 @@ def _reinforce(config: RunConfig, run: Run, data, metadata, resume) -> None:
       with open(output / ENV_STATE, 'rb') as file:
         _set_env_states(vec_env, pickle.load(file))
   else:
-    model = agents.build(
-      agent,
-      vec_env,
-      config.seed,
-      config.layers,
-      config.steps + _demo_count(data),
-    )
-    if data is not None:
-      if config.num_envs != 1:
-        raise ValueError('demonstrations and recordings need --num_envs=1')
-      # The buffer's size (run steps + these) keeps them for the run.
-      replay.store(model.replay_buffer, data)
+    model = _new_model(config, vec_env, data)
+  if config.safety_budget is not None and model.safety is None:
+    model.safety = safety.SafetyConstraint(config.safety_budget)
   # SB3's own logger would make a folder in /tmp per learn() call; its
   # values go to the run's TensorBoard events and progress lines instead.
   output_format = telemetry.agent_log_output(
@@ -494,6 +494,37 @@ def _reinforce(config: RunConfig, run: Run, data, metadata, resume) -> None:
     if run.solved(row):
       break
   vec_env.close()
+
+
+def init_checkpoint(init_from: str) -> pathlib.Path:
+  """The saved model a run starts from: `init_from`, or the checkpoint in
+  the run folder it names."""
+  path = pathlib.Path(init_from)
+  return path / CHECKPOINT if path.is_dir() else path
+
+
+def _new_model(config: RunConfig, vec_env, data):
+  """The model of a run's start: built, or taken from --init_from; the
+  demonstrations and recordings stored in its replay buffer."""
+  buffer_size = config.steps + _demo_count(data)
+  if config.init_from:
+    model = agents.warm_start(
+      config.agent,
+      init_checkpoint(config.init_from),
+      vec_env,
+      config.seed,
+      buffer_size,
+    )
+  else:
+    model = agents.build(
+      config.agent, vec_env, config.seed, config.layers, buffer_size
+    )
+  if data is not None:
+    if config.num_envs != 1:
+      raise ValueError('demonstrations and recordings need --num_envs=1')
+    # The buffer's size (run steps + these) keeps them for the run.
+    replay.store(model.replay_buffer, data)
+  return model
 
 
 def _demo_count(data) -> int:
