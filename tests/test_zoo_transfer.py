@@ -1,0 +1,46 @@
+"""The transfer table: shipped policies on the zoo's robots."""
+
+import json
+import shutil
+
+import pytest
+
+pytest.importorskip('dynamixel_sdk')  # The robots run on the virtual bus.
+
+from robel_dm.zoo import transfer  # noqa: E402
+
+
+def test_randomdynamics_policies_run_on_the_random_task():
+  assert transfer.evaluated_task('pose_random_dynamics') == 'pose_random'
+  assert transfer.evaluated_task('walk_fixed') == 'walk_fixed'
+
+
+def test_a_transfer_record_is_made_merged_and_tabled(tmp_path, monkeypatch):
+  monkeypatch.setitem(transfer.EPISODES, 'fixed', 1)
+  (pairing,) = transfer.pairings('dclaw_pose_fixed/claw_noisy')
+  record = transfer.evaluate_pairing(pairing)
+  assert record['robot'] == 'claw_noisy'
+  assert record['task'] == 'dclaw/pose_fixed'
+  assert record['episodes'] == 1
+  assert set(record['violations']) == {'position', 'velocity', 'current'}
+  results = tmp_path / 'transfer.json'
+  transfer.merge([record], results)
+  transfer.merge([dict(record, success=0.5)], results)  # Replaces it.
+  (kept,) = transfer.load_records(results)
+  assert kept['success'] == 0.5
+  doc = tmp_path / 'zoo.md'
+  shutil.copy(transfer.DOC, doc)
+  transfer.report([kept], doc)
+  table = doc.read_text()
+  assert '| dclaw/pose_fixed (`' in table
+  assert 'claw_weak_finger |' in table  # The robots' table.
+
+
+def test_the_docs_tables_are_made_from_the_records():
+  records = transfer.load_records()
+  text = transfer.DOC.read_text()
+  assert transfer.robots_table() in text
+  for domain in ('dclaw', 'dkitty'):
+    assert transfer.domain_table(records, domain) in text
+  for record in records:
+    assert json.dumps(record)  # Plain JSON.
