@@ -108,7 +108,7 @@ def sandbox(tmp_path, monkeypatch):
     'dclaw/pose_random': {'steps': 16, 'eval_every': 8},
   }
   plan['valve4'], plan['every_agent'] = [], ['dclaw/pose_random']
-  plan['also'] = {}
+  plan['also'], plan['constrained'] = {}, []
   monkeypatch.setattr(baselines, 'PLAN', plan)
   for name, path in (('RUNS_DIR', 'runs'), ('RESULTS', 'docs/b.json'),
                      ('DOC', 'docs/table.txt'), ('FIGURES', 'docs/figures'),
@@ -544,3 +544,29 @@ def test_the_figures_and_tables_are_made_from_the_current_records():
   # Results first: the robots' tables open the page, every run closes it.
   assert text.index('## Results') < text.index('<!-- results dclaw -->')
   assert text.index('## How the table is made') < text.index('## Per run')
+
+
+def test_a_warm_run_starts_from_the_random_variant_and_waits_for_it(sandbox):
+  baselines.PLAN['tasks']['dclaw/pose_random_dynamics'] = {
+    'steps': 16,
+    'eval_every': 8,
+  }
+  run = baselines.Run('dclaw', 'pose_random_dynamics', 'sac_warm', 0)
+  source = run.source()
+  assert source == baselines.Run('dclaw', 'pose_random', 'sac', 0)
+  assert run.config().init_from == str(source.directory)
+  lines = []
+  assert baselines.train_run(run, log=lines.append) is None
+  assert lines == [f'{run.name}: waits for {source.name} to start from']
+  assert not run.directory.exists()  # Nothing was started.
+  assert baselines.Run('dclaw', 'pose_random', 'sac', 0).source() is None
+
+
+def test_the_constrained_agent_learns_under_its_budget():
+  config = baselines.Run('dclaw', 'pose_fixed', 'sac_safe', 0).config()
+  assert config.budget == 10.0
+  assert baselines.Run('dclaw', 'pose_fixed', 'sac', 0).config().budget is None
+  names = {r.name for r in baselines.runs()}
+  for key in baselines.PLAN['constrained']:
+    domain, task = key.split('/')
+    assert f'{domain}_{task}_sac_safe_seed2' in names

@@ -69,6 +69,11 @@ class Agent:
       or `IMITATION_JAX`.
     network: the library policy's arguments beside the layer sizes (sbx
       SAC: `dropout_rate` and `layer_norm` of its critics).
+    safety_budget: the safety violations per episode it learns to stay
+      under (`train --safety_budget`'s default); None: no budget.
+    starts_from: in the baseline table, the variant whose run of the same
+      seed (by `sac`) it starts from ('random': a RandomDynamics task's
+      Random variant); None: from scratch.
   """
 
   name: str
@@ -81,6 +86,8 @@ class Agent:
   needs_demos: bool = False
   library: str = ''
   network: dict[str, Any] = dataclasses.field(default_factory=dict)
+  safety_budget: float | None = None
+  starts_from: str | None = None
 
 
 # SAC's usual settings (256 x 256, learning rate 3e-4, one update per env
@@ -177,6 +184,30 @@ AGENTS: dict[str, Agent] = {
       replay=True,
       library=SAC_JAX,
       network=_DROQ_CRITICS,
+    ),
+    Agent(
+      'sac_safe',
+      OFF_POLICY,
+      'SAC',
+      'sbx-rl 0.28.0 SAC (JAX), learning rate 1e-3, under a budget of 10 '
+      'safety violations per episode (a learned Lagrange multiplier)',
+      (256, 256),
+      _SAC,
+      replay=True,
+      library=SAC_JAX,
+      safety_budget=10.0,
+    ),
+    Agent(
+      'sac_warm',
+      OFF_POLICY,
+      'SAC',
+      'sbx-rl 0.28.0 SAC (JAX), learning rate 1e-3, starting from the '
+      "networks of the Random variant's sac run of the same seed",
+      (256, 256),
+      _SAC,
+      replay=True,
+      library=SAC_JAX,
+      starts_from='random',
     ),
     Agent(
       'sac_demos',

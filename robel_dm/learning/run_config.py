@@ -76,6 +76,13 @@ class RunConfig:
     return agents.get(self.algo)
 
   @property
+  def budget(self) -> float | None:
+    """The safety budget: this run's, else its agent's."""
+    if self.safety_budget is not None:
+      return self.safety_budget
+    return self.agent.safety_budget
+
+  @property
   def layers(self) -> tuple[int, ...]:
     return tuple(self.hidden) or self.agent.hidden
 

@@ -116,7 +116,7 @@ def metadata_of(config: RunConfig) -> dict[str, Any]:
     'algo': config.algo,
     'seed': config.seed,
     'safety_penalty': config.safety_penalty,
-    'safety_budget': config.safety_budget,
+    'safety_budget': config.budget,
     'init_from': config.init_from,
   }
 
@@ -463,8 +463,8 @@ def _reinforce(config: RunConfig, run: Run, data, metadata, resume) -> None:
         _set_env_states(vec_env, pickle.load(file))
   else:
     model = _new_model(config, vec_env, data)
-  if config.safety_budget is not None and model.safety is None:
-    model.safety = safety.SafetyConstraint(config.safety_budget)
+  if config.budget is not None and model.safety is None:
+    model.safety = safety.SafetyConstraint(config.budget)
   # SB3's own logger would make a folder in /tmp per learn() call; its
   # values go to the run's TensorBoard events and progress lines instead.
   output_format = telemetry.agent_log_output(

@@ -83,6 +83,16 @@ class Run:
   def directory(self) -> pathlib.Path:
     return RUNS_DIR / self.name
 
+  def source(self) -> 'Run | None':
+    """The run this one starts from (its agent's `starts_from`): the
+    default agent's run of the Random variant, same seed; else None."""
+    from robel_dm.learning import agents  # noqa: PLC0415
+
+    if agents.get(self.algo).starts_from != 'random':
+      return None
+    task = self.task.removesuffix('_dynamics')
+    return Run(self.domain, task, PLAN['default_agent'], self.seed, self.valve4)
+
   def config(self, demos: tuple[str, ...] = ()):
     from robel_dm.learning import agents, train  # noqa: PLC0415
 
@@ -109,6 +119,7 @@ class Run:
       # A Fixed task's evaluation is one deterministic episode; a Random
       # one's, a sample: it must hold the rate over more than one.
       stop_streak=1 if self.fixed else PLAN['stop_streak_random'],
+      init_from=str(self.source().directory) if self.source() else None,
     )
 
 
@@ -116,7 +127,8 @@ def runs() -> list[Run]:
   """Every run of the table, in the order they are worth running: the
   default agent on the Fixed tasks (every seed), then on the Random ones,
   then on RandomDynamics and the 4-prong valve, then the other agents,
-  then the agents tried `also` on tasks the default agent left unsolved."""
+  then the constrained agent (under a safety budget), then the agents
+  tried `also` on tasks the default agent left unsolved."""
   tiers = {'fixed': [], 'random': [], 'other': []}
   for key in PLAN['tasks']:
     domain, task = key.split('/')
@@ -139,6 +151,10 @@ def runs() -> list[Run]:
       for algo in PLAN['agents']:
         if algo != PLAN['default_agent']:
           table.append(Run(domain, task, algo, seed))
+  for seed in PLAN['seeds']:
+    for key in PLAN.get('constrained', []):
+      domain, task = key.split('/')
+      table.append(Run(domain, task, PLAN['constrained_agent'], seed))
   for key, algos in PLAN.get('also', {}).items():
     domain, task = key.split('/')
     for seed in PLAN['seeds']:
@@ -321,6 +337,10 @@ def train_run(run: Run, log=print) -> dict | None:
 
   if finished(run):
     return record(run)
+  source = run.source()
+  if source is not None and not finished(source):
+    log(f'{run.name}: waits for {source.name} to start from')
+    return None
   demos = ()
   if agents.get(run.algo).needs_demos:
     from robel_dm.learning.baselines import demonstrations  # noqa: PLC0415

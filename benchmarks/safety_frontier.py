@@ -1,0 +1,106 @@
+r"""Success against safety violations, per safety budget (train
+--safety_budget), on one task.
+
+    MUJOCO_GL=egl python benchmarks/safety_frontier.py --task=pose_fixed \
+        --budgets=none,200,50,10 --seeds=0,1,2 [--steps=40000]
+
+Each (budget, seed) is a `train` run of the default agent with that
+`--safety_budget` ('none': no budget), evaluated every `--eval_every` env
+steps on the task's evaluation episodes (one on a Fixed task, whose
+episodes are all the same; 10 otherwise). Printed per run: the last
+evaluation's success and violations per episode (all kinds summed), and
+the first evaluation, if any, that meets ROBEL-safe success: success >= 0.8
+with at most 10 violations per episode. One JSON line per run, also
+appended to OUTPUT/results.jsonl; then per budget the means over seeds.
+"""
+
+import argparse
+import json
+import pathlib
+import shutil
+import statistics
+import sys
+import time
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+SOLVED = 0.8
+SAFE = 10  # Violations per episode, all kinds summed.
+
+
+def _violations(row: dict) -> float:
+  return sum(row['safety'].values())
+
+
+def run(args, budget: float | None, seed: int) -> dict:
+  from robel_dm.learning import train  # noqa: PLC0415
+
+  domain, task = args.task.split('/')
+  config = train.RunConfig(
+    domain=domain,
+    task=task,
+    seed=seed,
+    steps=args.steps,
+    eval_every=args.eval_every,
+    eval_episodes=1 if task.endswith('_fixed') else 10,
+    safety_budget=budget,
+  )
+  name = f'{task}_budget{"none" if budget is None else int(budget)}_{seed}'
+  directory = pathlib.Path(args.output) / name
+  shutil.rmtree(directory, ignore_errors=True)
+  start = time.process_time()
+  history = train.train(config, directory, log=lambda line: None)
+  last = history[-1]
+  safe = [
+    row
+    for row in history
+    if row['success_rate'] >= SOLVED and _violations(row) <= SAFE
+  ]
+  return {
+    'task': args.task,
+    'budget': budget,
+    'seed': seed,
+    'env_steps': last['env_steps'],
+    'success': last['success_rate'],
+    'violations': last['safety'],
+    'safe_success_at': safe[0]['env_steps'] if safe else None,
+    'cpu_seconds': round(time.process_time() - start, 1),
+  }
+
+
+def main() -> None:
+  parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+  parser.add_argument('--task', default='dclaw/pose_fixed')
+  parser.add_argument('--budgets', default='none,200,50,10')
+  parser.add_argument('--seeds', default='0,1,2')
+  parser.add_argument('--steps', type=int, default=40_000)
+  parser.add_argument('--eval_every', type=int, default=4_000)
+  parser.add_argument('--output', default=str(ROOT / 'runs/safety_frontier'))
+  args = parser.parse_args()
+  budgets = [None if b == 'none' else float(b) for b in args.budgets.split(',')]
+  output = pathlib.Path(args.output)
+  output.mkdir(parents=True, exist_ok=True)
+  rows = []
+  for budget in budgets:
+    for seed in (int(s) for s in args.seeds.split(',')):
+      row = run(args, budget, seed)
+      rows.append(row)
+      print(json.dumps(row), flush=True)
+      with open(output / 'results.jsonl', 'a') as file:
+        file.write(json.dumps(row) + '\n')
+  print(f'\n{args.task}: last evaluation, mean over seeds')
+  print('budget  success  violations/episode  seeds safe-solved')
+  for budget in budgets:
+    mine = [r for r in rows if r['budget'] == budget]
+    success = statistics.mean(r['success'] for r in mine)
+    violations = statistics.mean(_violations(r) for r in mine)
+    safe = sum(r['safe_success_at'] is not None for r in mine)
+    label = 'none' if budget is None else f'{budget:g}'
+    print(
+      f'{label:>6}  {success:7.2f}  {violations:18.1f}  {safe} of {len(mine)}'
+    )
+
+
+if __name__ == '__main__':
+  main()
