@@ -570,3 +570,10 @@ def test_the_constrained_agent_learns_under_its_budget():
   for key in baselines.PLAN['constrained']:
     domain, task = key.split('/')
     assert f'{domain}_{task}_sac_safe_seed2' in names
+
+
+def test_a_warm_runs_steps_to_80_count_its_sources():
+  row = {'success': 1.0, 'steps_to_80': 0, 'protocol': 2}
+  assert selection.steps_to_80(row) == 0
+  row['started_from'] = {'run': 'dclaw_pose_random_sac_seed0', 'env_steps': 15}
+  assert selection.steps_to_80(row) == 15

@@ -438,7 +438,15 @@ def record(run: Run) -> dict:
   last, reached = log[-1], _to_80(log)
   config = json.loads((run.directory / 'config.json').read_text())
   confirmations = run.directory / CONFIRMATIONS
+  source = run.source()
+  started_from = {}
+  if source is not None:
+    # Its networks had learned from the source's env steps first.
+    started_from = {
+      'started_from': {'run': source.name, 'env_steps': _curve_end(source)}
+    }
   return {
+    **started_from,
     'domain': run.domain,
     'task': run.task,
     'task_kwargs': run.task_kwargs,

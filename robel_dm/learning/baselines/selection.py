@@ -32,10 +32,12 @@ def validation_score(row: dict) -> float:
 
 def steps_to_80(row: dict) -> float:
   """The env steps to the first training evaluation at 80% of a solved
-  row; UNSOLVED for a row whose reported success is below the bar."""
+  row, those of the run it started from included; UNSOLVED for a row whose
+  reported success is below the bar."""
   if not baselines.solved(row) or row['steps_to_80'] is None:
     return UNSOLVED
-  return row['steps_to_80']
+  before = (row.get('started_from') or {}).get('env_steps', 0)
+  return before + row['steps_to_80']
 
 
 def median_steps_to_80(group: Iterable[dict]) -> float:
