@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from robel_dm import suite
+from robel_dm.hardware import clock as clock_lib
 from robel_dm.hardware import config as config_lib
 from robel_dm.hardware import resets
 from robel_dm.hardware.dynamixel import control_table as table
@@ -297,19 +298,20 @@ def test_a_fallen_virtual_dkitty_is_stood_up_by_the_simulated_person():
     env.close()
 
 
-def test_dkitty_manual_reset_waits_until_the_robot_is_stood_up(monkeypatch):
-  # The simulated person does not come.
-  monkeypatch.setattr(
-    sim_robot.SimulatedRobot, 'place_at_start', lambda self: None
-  )
+def test_dkitty_manual_reset_waits_until_the_robot_is_stood_up():
   env = suite.load(
     'dkitty', 'walk_fixed', seed=0, device_path='virtual', reset='manual'
   )
   try:
-    env.reset()  # Already standing: the wait ends after 6 good checks.
+    env.reset()
     _knock_over(env)
-    with pytest.raises(resets.ResetError, match='not stood up within'):
-      env.reset()
+    # A person who does not come: the reset of a robot with a tracker.
+    nobody = resets.ManualReset(
+      torso_source=env.simulated_robot.torso_pose, timeout=5.0
+    )
+    clock = clock_lib.SimulatedClock(env.simulated_robot)
+    with pytest.raises(resets.ResetError, match='not stood up within 5.0 s'):
+      nobody(env.robot, clock, np.zeros(12), {})
   finally:
     env.close()
 

@@ -223,7 +223,8 @@ class ManualReset:
   until the torso has been upright and no higher than standing for more
   than 5 checks 0.1 s apart, then 1 s more (ROBEL's ManualAuto), and fails
   after `timeout` seconds. On a simulated robot, `operator` is the person:
-  called once the motors are released, it puts the robot in place.
+  called once the motors are released, it puts the robot in place, and the
+  move follows at once.
   """
 
   name = 'manual'
@@ -247,12 +248,13 @@ class ManualReset:
       'press Enter to continue.'
     )
     if self._operator is not None:
+      # Placed at once and held there until the move below takes over:
+      # limp legs would otherwise fold under it.
       self._operator()
     elif self._torso is None:
       self._wait(message)
     else:
       logging.warning('Motors released: stand the robot up.')
-    if self._torso is not None:
       self._wait_until_upright(clock)
     MoveReset()(robot, clock, joint_goals, auxiliary_goals)
 
