@@ -57,7 +57,9 @@ def _inject_random_fault(bus, rng) -> None:
 def soak(robot: str, steps: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
   """Step times (s) of the steps that went through, and of those that
   faulted."""
-  env = suite.load(robot, _TASKS[robot], seed=seed, device_path='virtual')
+  env = suite.load(
+    robot, _TASKS[robot], seed=seed, robot=suite.RobotOptions('virtual')
+  )
   bus, rng = env.virtual_bus, np.random.default_rng(seed)
   stepped, faulted = [], []
   try:

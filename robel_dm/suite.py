@@ -71,33 +71,16 @@ def _unknown(kind: str, name: str, known) -> ValueError:
   return ValueError(f'unknown {kind} {name!r}; expected one of {known}.{hint}')
 
 
-def _one_of(value, alias, name: str):
-  """`value`, or dm_control.suite's `<name>_name` keyword in its place."""
-  if value is not None and alias is not None and value != alias:
-    raise ValueError(f'both {name}={value!r} and {name}_name={alias!r} given')
-  if value is None and alias is None:
-    raise ValueError(f'{name} is required')
-  return value if value is not None else alias
-
-
 def load(
-  domain: str | None = None,
-  task: str | None = None,
+  domain: str,
+  task: str,
   task_kwargs: dict[str, Any] | None = None,
   environment_kwargs: dict[str, Any] | None = None,
   *,
   seed: int | None = None,
   time_limit: float | None = None,
   robot: RobotOptions | None = None,
-  device_path: str | None = None,
-  robot_config=None,
-  reset=None,
-  tracker=None,
-  guide: str | None = None,
   dynamics: Dynamics | None = None,
-  domain_name: str | None = None,
-  task_name: str | None = None,
-  visualize_reward: bool = False,
 ) -> Environment:
   """Builds a task's environment.
 
@@ -110,32 +93,26 @@ def load(
       ends at the first control step at or after this time.
     task_kwargs: keyword arguments of the task, e.g. `{'valve': 'valve4'}`.
     environment_kwargs: extra `composer.Environment` arguments.
-    robot: run on a robot: a `RobotOptions` (its bus's device, e.g.
-      '/dev/ttyUSB0', or 'virtual' for an in-process virtual bus driven by
-      a simulation; its configuration, reset, guide motor and tracker).
-      None (default) simulates.
-    device_path, robot_config, reset, tracker, guide: instead of `robot`,
-      the fields of a `RobotOptions` built here (`device_path` is needed).
+    robot: run on a robot: a `RobotOptions`, e.g.
+      `RobotOptions('/dev/ttyUSB0', reset='move')` (its bus's device, or
+      'virtual' for an in-process virtual bus driven by a simulation; its
+      configuration, reset, guide motor and tracker). None (default)
+      simulates.
     dynamics: a calibration (file path or `calibration.Calibration`, e.g.
       from `python -m robel_dm.sysid fit`) of the simulated robot's joint
-      dynamics and control delay. With device_path='virtual' it calibrates
-      the simulation behind the virtual bus; a real robot has its own.
-    domain_name: `dm_control.suite.load`'s name for `domain`.
-    task_name: `dm_control.suite.load`'s name for `task`.
-    visualize_reward: accepted for `dm_control.suite` code; robel_dm shows
-      goal markers instead and draws no reward colours.
+      dynamics and control delay. On `RobotOptions('virtual')` it
+      calibrates the simulation behind the virtual bus; a real robot has
+      its own.
 
   Returns:
     A `dm_env.Environment` (a `composer.Environment`).
 
   Raises:
-    ValueError: for an unknown domain, task or task argument.
+    ValueError: for an unknown domain, task or task argument, or a `robot`
+      that is not a `RobotOptions`.
     calibration.CalibrationError: for a malformed calibration or one of
       another robot.
   """
-  del visualize_reward  # See the docstring.
-  domain = _one_of(domain, domain_name, 'domain')
-  task = _one_of(task, task_name, 'task')
   if domain not in registry.DOMAINS:
     raise _unknown('domain', domain, registry.DOMAINS)
   tasks = registry.DOMAINS[domain]
@@ -172,33 +149,19 @@ def load(
     seed=seed,
     time_limit=time_limit,
     environment_kwargs=environment_kwargs,
-    robot=_robot_options(
-      robot,
-      device_path=device_path,
-      robot_config=robot_config,
-      reset=reset,
-      tracker=tracker,
-      guide=guide,
-    ),
+    robot=_robot_options(robot),
     dynamics=dynamics,
   )
 
 
-def _robot_options(robot: RobotOptions | None, **fields) -> RobotOptions | None:
-  """`robot`, or the options the keyword arguments give (None: simulate)."""
-  given = [name for name, value in fields.items() if value is not None]
-  if robot is not None:
-    if given:
-      raise ValueError(
-        f'pass either robot= or {", ".join(given)}, not both (they are '
-        'fields of robot=)'
-      )
-    return robot
-  if fields['device_path'] is None:
-    if given:
-      raise ValueError(f'{", ".join(given)} need a device_path (a robot)')
-    return None
-  return RobotOptions(**fields)
+def _robot_options(robot) -> RobotOptions | None:
+  """`robot`, checked: a `RobotOptions` or None (simulate)."""
+  if robot is not None and not isinstance(robot, RobotOptions):
+    raise ValueError(
+      f'robot must be a suite.RobotOptions (e.g. '
+      f"suite.RobotOptions('/dev/ttyUSB0')) or None, got {robot!r}"
+    )
+  return robot
 
 
 def load_excitation(

@@ -17,12 +17,20 @@ import sys
 
 from absl import app, flags
 
+from robel_dm import commands
 from robel_dm.learning import agents
 
 
 def _define_flags() -> None:
   """The command line's flags (defined only when run as a program, so that
   importing this module defines none)."""
+  _define_run_flags()
+  _define_learning_flags()
+  _define_robot_flags()
+
+
+def _define_run_flags() -> None:
+  """The task, the agent, its budget and evaluations, the run's folder."""
   flags.DEFINE_string('domain', 'dclaw', 'Task domain.')
   flags.DEFINE_string('task', 'pose_fixed', 'Task name in the domain.')
   flags.DEFINE_string(
@@ -39,6 +47,17 @@ def _define_flags() -> None:
   )
   flags.DEFINE_integer('eval_episodes', 10, 'Episodes per evaluation.')
   flags.DEFINE_string('output_dir', None, 'Where to write the run.')
+  flags.DEFINE_bool('resume', False, 'Continue from the checkpoint.')
+  flags.DEFINE_bool(
+    'overwrite',
+    False,
+    'Start over in an --output_dir that holds a run (removes its files).',
+  )
+
+
+def _define_learning_flags() -> None:
+  """How the agent learns: safety, starting point, networks, demonstrations,
+  when to stop."""
   flags.DEFINE_float(
     'safety_penalty', 0.0, 'Training reward minus this per safety violation.'
   )
@@ -53,12 +72,6 @@ def _define_flags() -> None:
     None,
     "Start from another run's networks: its folder or checkpoint.zip (SAC "
     'agents; e.g. the Random variant for RandomDynamics).',
-  )
-  flags.DEFINE_bool('resume', False, 'Continue from the checkpoint.')
-  flags.DEFINE_bool(
-    'overwrite',
-    False,
-    'Start over in an --output_dir that holds a run (removes its files).',
   )
   flags.DEFINE_list('hidden', [], "Hidden layer sizes (the agent's if empty).")
   flags.DEFINE_list(
@@ -81,7 +94,10 @@ def _define_flags() -> None:
     'Recordings whose every transition starts the replay buffer (or joins '
     "bc's data).",
   )
-  # Learning on a robot (robel_dm.learning.robot).
+
+
+def _define_robot_flags() -> None:
+  """Learning on a robot (robel_dm.learning.robot)."""
   flags.DEFINE_string(
     'device_path',
     None,
@@ -144,62 +160,16 @@ def main(argv):
   if not FLAGS.output_dir:
     raise app.UsageError('--output_dir is required')
   os.environ.setdefault('MUJOCO_GL', 'egl')
-  from robel_dm.evaluation import cli, task_args  # noqa: PLC0415
+  from robel_dm.evaluation import cli  # noqa: PLC0415
 
   try:
-    from robel_dm.learning import run_config  # noqa: PLC0415
-    from robel_dm.learning import train as learning  # noqa: PLC0415
-
-    config = learning.RunConfig(
-      domain=FLAGS.domain,
-      task=FLAGS.task,
-      task_kwargs=task_args.parse_task_kwargs(FLAGS.task_kwargs),
-      algo=FLAGS.algo,
-      seed=FLAGS.seed,
-      steps=FLAGS.steps,
-      num_envs=FLAGS.num_envs,
-      eval_every=FLAGS.eval_every,
-      eval_episodes=FLAGS.eval_episodes,
-      safety_penalty=FLAGS.safety_penalty,
-      safety_budget=FLAGS.safety_budget,
-      init_from=FLAGS.init_from,
-      hidden=run_config.parse_hidden(FLAGS.hidden),
-      demos=tuple(FLAGS.demos),
-      demo_episodes=FLAGS.demo_episodes,
-      stop_at_success=FLAGS.stop_at_success,
-      stop_streak=FLAGS.stop_streak,
-      from_recording=tuple(FLAGS.from_recording),
-    )
+    config = _run_config()
     log = lambda line: print(line, flush=True)  # noqa: E731
     robot_options = cli.robot_options(FLAGS)
     if robot_options is not None:
-      from robel_dm.learning import robot  # noqa: PLC0415
-
-      options = robot.RobotRunOptions(
-        robot_options,
-        **{name: FLAGS[name].value for name in _ROBOT_RUN_FLAGS},
-      )
-      robot.train_on_robot(
-        config,
-        options,
-        FLAGS.output_dir,
-        resume=FLAGS.resume,
-        overwrite=FLAGS.overwrite,
-        log=log,
-      )
+      _train_on_robot(config, robot_options, log)
     else:
-      given = [name for name in _ROBOT_RUN_FLAGS if FLAGS[name].present]
-      if given:
-        raise ValueError(
-          f'--{given[0]} needs --device_path (it is about a robot)'
-        )
-      learning.train(
-        config,
-        FLAGS.output_dir,
-        resume=FLAGS.resume,
-        overwrite=FLAGS.overwrite,
-        log=log,
-      )
+      _train_in_simulation(config, log)
   except ImportError as error:
     print(
       f'error: training needs the learn extra '
@@ -221,6 +191,69 @@ def main(argv):
       print(_stopped(_EXIT_SIGNALS[stop.code - 128]), file=sys.stderr)
     raise
   return 0
+
+
+def _run_config():
+  """The flags' `learning.train.RunConfig`."""
+  from robel_dm.evaluation import task_args  # noqa: PLC0415
+  from robel_dm.learning import run_config  # noqa: PLC0415
+  from robel_dm.learning import train as learning  # noqa: PLC0415
+
+  return learning.RunConfig(
+    domain=FLAGS.domain,
+    task=FLAGS.task,
+    task_kwargs=task_args.parse_task_kwargs(FLAGS.task_kwargs),
+    algo=FLAGS.algo,
+    seed=FLAGS.seed,
+    steps=FLAGS.steps,
+    num_envs=FLAGS.num_envs,
+    eval_every=FLAGS.eval_every,
+    eval_episodes=FLAGS.eval_episodes,
+    safety_penalty=FLAGS.safety_penalty,
+    safety_budget=FLAGS.safety_budget,
+    init_from=FLAGS.init_from,
+    hidden=run_config.parse_hidden(FLAGS.hidden),
+    demos=tuple(FLAGS.demos),
+    demo_episodes=FLAGS.demo_episodes,
+    stop_at_success=FLAGS.stop_at_success,
+    stop_streak=FLAGS.stop_streak,
+    from_recording=tuple(FLAGS.from_recording),
+  )
+
+
+def _train_on_robot(config, robot_options, log) -> None:
+  """Learns `config`'s task on the robot of `robot_options` (the flags'
+  `suite.RobotOptions`), in real time."""
+  from robel_dm.learning import robot  # noqa: PLC0415
+
+  options = robot.RobotRunOptions(
+    robot_options,
+    **{name: FLAGS[name].value for name in _ROBOT_RUN_FLAGS},
+  )
+  robot.train_on_robot(
+    config,
+    options,
+    FLAGS.output_dir,
+    resume=FLAGS.resume,
+    overwrite=FLAGS.overwrite,
+    log=log,
+  )
+
+
+def _train_in_simulation(config, log) -> None:
+  """Learns `config`'s task in simulation; refuses the robot-only flags."""
+  from robel_dm.learning import train as learning  # noqa: PLC0415
+
+  given = [name for name in _ROBOT_RUN_FLAGS if FLAGS[name].present]
+  if given:
+    raise ValueError(f'--{given[0]} needs --device_path (it is about a robot)')
+  learning.train(
+    config,
+    FLAGS.output_dir,
+    resume=FLAGS.resume,
+    overwrite=FLAGS.overwrite,
+    log=log,
+  )
 
 
 _EXIT_SIGNALS = {
@@ -245,6 +278,12 @@ def _stopped(cause: str) -> str:
   )
 
 
-if __name__ == '__main__':
+def run() -> None:
+  """The command (`robel-train`, or `python -m robel_dm.train`)."""
   _define_flags()
+  commands.describe(__doc__, __name__)
   app.run(main)
+
+
+if __name__ == '__main__':
+  run()

@@ -17,6 +17,7 @@ from robel_dm.learning.baselines import (  # noqa: E402
   cli,
   demonstrations,
   report,
+  scheduling,
   selection,
 )
 
@@ -364,7 +365,7 @@ def test_the_chosen_run_is_shipped_when_its_policy_is_at_hand(sandbox):
 
 
 def test_the_report_is_derived_from_the_records(sandbox):
-  baselines.train_queue(0, 1, 'dclaw_pose_*_sac_seed0', None)
+  scheduling.train_queue(0, 1, 'dclaw_pose_*_sac_seed0', None)
   rows = json.loads(baselines.RESULTS.read_text())
   assert {(r['task'], r['algo']) for r in rows} == {
     ('pose_fixed', 'sac'), ('pose_random', 'sac')
@@ -392,12 +393,12 @@ def test_the_report_is_derived_from_the_records(sandbox):
 
 
 def test_a_recorded_run_is_not_trained_again_without_its_folder(sandbox):
-  baselines.train_queue(0, 1, 'dclaw_pose_fixed_sac_seed0', None)
+  scheduling.train_queue(0, 1, 'dclaw_pose_fixed_sac_seed0', None)
   rows = json.loads(baselines.RESULTS.read_text())
   shutil.rmtree(baselines.RUNS_DIR)
   run = baselines.Run('dclaw', 'pose_fixed', 'sac', 0)
   assert baselines.recorded(run) and not baselines.finished(run)
-  baselines.train_queue(0, 1, 'dclaw_pose_fixed_sac_seed0', None)
+  scheduling.train_queue(0, 1, 'dclaw_pose_fixed_sac_seed0', None)
   assert not run.directory.exists()
   assert json.loads(baselines.RESULTS.read_text()) == rows
 
@@ -407,11 +408,11 @@ def test_a_recorded_run_stands_when_the_plan_raises_its_budget(sandbox):
   # stopping rule. A longer run is a new run (--force).
   name = 'dclaw_pose_random_sac_seed0'
   run = baselines.Run('dclaw', 'pose_random', 'sac', 0)
-  baselines.train_queue(0, 1, name, None)
+  scheduling.train_queue(0, 1, name, None)
   row = json.loads(baselines.RESULTS.read_text())[0]
   baselines.PLAN['tasks']['dclaw/pose_random']['steps'] = 32
   assert baselines.done(run)
-  baselines.train_queue(0, 1, name, None)
+  scheduling.train_queue(0, 1, name, None)
   assert json.loads(baselines.RESULTS.read_text())[0] == row
   shutil.rmtree(baselines.RUNS_DIR)
   assert baselines.done(run)
@@ -525,7 +526,7 @@ def test_list_says_when_nothing_is_left(sandbox, capsys):
 
 def test_the_table_fans_out_over_ray(sandbox):
   pytest.importorskip('ray')
-  records = baselines.train_ray('local', 'dclaw_pose_*_sac_seed0')
+  records = scheduling.train_ray('local', 'dclaw_pose_*_sac_seed0')
   assert sorted(r['task'] for r in records) == ['pose_fixed', 'pose_random']
   rows = json.loads(baselines.RESULTS.read_text())
   assert len(rows) == 2

@@ -1,8 +1,9 @@
 """The hardware layer end to end: real dynamixel_sdk, virtual servo bus.
 
-Every environment here is `suite.load(..., device_path='virtual')`: the task
-runs on `HardwarePhysics` through the unmodified SDK and an in-process
-virtual bus whose motors a MuJoCo simulation drives in simulated time.
+Every environment here is
+`suite.load(..., robot=suite.RobotOptions('virtual'))`: the task runs on
+`HardwarePhysics` through the unmodified SDK and an in-process virtual bus
+whose motors a MuJoCo simulation drives in simulated time.
 """
 
 import json
@@ -69,7 +70,7 @@ def _torque(bus):
 
 
 def test_every_task_runs_full_episodes_with_the_simulation_spec(task_id):
-  env = suite.load(*task_id, seed=0, device_path='virtual')
+  env = suite.load(*task_id, seed=0, robot=suite.RobotOptions('virtual'))
   simulated = suite.load(*task_id, seed=0)
   try:
     assert env.observation_spec() == simulated.observation_spec()
@@ -98,7 +99,7 @@ def test_every_task_runs_full_episodes_with_the_simulation_spec(task_id):
 )  # fmt: skip
 def test_virtual_bus_episode_tracks_the_simulation(tracked_task):
   task_id = tracked_task
-  env = suite.load(*task_id, seed=0, device_path='virtual')
+  env = suite.load(*task_id, seed=0, robot=suite.RobotOptions('virtual'))
   simulated = suite.load(*task_id, seed=0)
   try:
     hardware, sim = env.reset(), simulated.reset()
@@ -115,7 +116,9 @@ def test_virtual_bus_episode_tracks_the_simulation(tracked_task):
 
 
 def test_safety_counts_measured_currents():
-  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  env = suite.load(
+    'dclaw', 'pose_fixed', seed=0, robot=suite.RobotOptions('virtual')
+  )
   try:
     env.reset()
     currents = []
@@ -137,7 +140,7 @@ def _current_counter(env) -> int:
 )
 def test_current_counter_on_hand_built_currents(domain_task):
   limit = _SAFE_CURRENT[domain_task[0]]
-  env = suite.load(*domain_task, seed=0, device_path='virtual')
+  env = suite.load(*domain_task, seed=0, robot=suite.RobotOptions('virtual'))
   try:
     env.reset()
     currents = env.physics.motor_currents  # What the task reads, mA.
@@ -176,7 +179,7 @@ def test_current_counter_counts_currents_the_servos_report(domain_task):
   # can (in whole current units), every other the largest under it; signs
   # alternate. Then all report one over.
   limit = _SAFE_CURRENT[domain_task[0]]
-  env = suite.load(*domain_task, seed=0, device_path='virtual')
+  env = suite.load(*domain_task, seed=0, robot=suite.RobotOptions('virtual'))
   bus = env.virtual_bus
   try:
     env.reset()
@@ -207,7 +210,9 @@ def test_current_counter_counts_currents_the_servos_report(domain_task):
 
 
 def test_torque_is_off_after_close():
-  env = suite.load('dclaw', 'turn_fixed', seed=0, device_path='virtual')
+  env = suite.load(
+    'dclaw', 'turn_fixed', seed=0, robot=suite.RobotOptions('virtual')
+  )
   bus = env.virtual_bus
   env.reset()
   env.step(np.zeros(9))
@@ -217,7 +222,9 @@ def test_torque_is_off_after_close():
 
 
 def test_nan_actions_never_reach_the_bus():
-  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  env = suite.load(
+    'dclaw', 'pose_fixed', seed=0, robot=suite.RobotOptions('virtual')
+  )
   try:
     env.reset()
     env.step(np.zeros(9))
@@ -233,7 +240,9 @@ def test_nan_actions_never_reach_the_bus():
 
 
 def test_an_exception_inside_a_step_releases_the_motors(monkeypatch):
-  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  env = suite.load(
+    'dclaw', 'pose_fixed', seed=0, robot=suite.RobotOptions('virtual')
+  )
   bus = env.virtual_bus
   try:
     env.reset()
@@ -251,7 +260,9 @@ def test_an_exception_inside_a_step_releases_the_motors(monkeypatch):
 
 
 def test_ctrl_c_during_a_step_releases_the_motors(monkeypatch):
-  env = suite.load('dclaw', 'turn_fixed', seed=0, device_path='virtual')
+  env = suite.load(
+    'dclaw', 'turn_fixed', seed=0, robot=suite.RobotOptions('virtual')
+  )
   bus = env.virtual_bus
   try:
     env.reset()
@@ -269,7 +280,9 @@ def test_ctrl_c_during_a_step_releases_the_motors(monkeypatch):
 
 
 def test_overload_stops_the_episode_naming_the_motor():
-  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  env = suite.load(
+    'dclaw', 'pose_fixed', seed=0, robot=suite.RobotOptions('virtual')
+  )
   bus = env.virtual_bus
   try:
     env.reset()
@@ -285,7 +298,9 @@ def test_overload_stops_the_episode_naming_the_motor():
 def test_a_motor_that_disappears_is_named_and_the_rest_released(
   lockstep, short_timeouts
 ):
-  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  env = suite.load(
+    'dclaw', 'pose_fixed', seed=0, robot=suite.RobotOptions('virtual')
+  )
   bus = env.virtual_bus
   try:
     env.reset()
@@ -305,7 +320,9 @@ def test_a_busy_virtual_bus_is_waited_for_and_a_silent_motor_still_named(
   # Each packet takes the simulated bus 0.1 s, three times the SDK's reply
   # deadline, as on a machine busy with other work: its replies come late
   # but come, and a motor that does not answer is still the one named.
-  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  env = suite.load(
+    'dclaw', 'pose_fixed', seed=0, robot=suite.RobotOptions('virtual')
+  )
   bus = env.virtual_bus
   try:
     env.reset()
@@ -328,7 +345,9 @@ def test_a_busy_virtual_bus_is_waited_for_and_a_silent_motor_still_named(
 def test_one_corrupted_or_lost_reply_is_retried_transparently(
   lockstep, short_timeouts
 ):
-  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  env = suite.load(
+    'dclaw', 'pose_fixed', seed=0, robot=suite.RobotOptions('virtual')
+  )
   bus = env.virtual_bus
   try:
     env.reset()
@@ -345,7 +364,9 @@ def test_persistent_corruption_raises_instead_of_returning_stale_data(
   lockstep,
   short_timeouts,
 ):
-  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  env = suite.load(
+    'dclaw', 'pose_fixed', seed=0, robot=suite.RobotOptions('virtual')
+  )
   bus = env.virtual_bus
   try:
     env.reset()
@@ -371,12 +392,18 @@ def test_missing_motor_at_connect_is_named(lockstep, short_timeouts):
 
 def test_missing_device_gives_a_clear_error():
   with pytest.raises(dynamixel.DynamixelError, match='cannot open'):
-    suite.load('dclaw', 'pose_fixed', device_path='/dev/robel-dm-no-such-port')
+    suite.load(
+      'dclaw',
+      'pose_fixed',
+      robot=suite.RobotOptions('/dev/robel-dm-no-such-port'),
+    )
 
 
 def test_dkitty_on_a_real_bus_needs_a_tracker():
   with pytest.raises(ValueError, match='tracker'):
-    suite.load('dkitty', 'stand_fixed', device_path='/dev/ttyUSB0')
+    suite.load(
+      'dkitty', 'stand_fixed', robot=suite.RobotOptions('/dev/ttyUSB0')
+    )
 
 
 def test_client_units_and_signs():
@@ -442,7 +469,9 @@ def test_unknown_device_configuration_mismatch_is_rejected(tmp_path):
 
 
 def test_hardware_reset_moves_to_the_initial_pose_without_simulated_settling():
-  env = suite.load('dkitty', 'stand_random', seed=0, device_path='virtual')
+  env = suite.load(
+    'dkitty', 'stand_random', seed=0, robot=suite.RobotOptions('virtual')
+  )
   try:
     for _ in range(2):  # The second pose differs from the robot's state.
       env.reset()

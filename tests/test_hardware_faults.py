@@ -67,7 +67,8 @@ import threading
 {main_thread_import}
 
 def drive():
-  env = suite.load('dclaw', 'turn_fixed', device_path=DEVICE, reset='move')
+  robot = suite.RobotOptions(DEVICE, reset='move')
+  env = suite.load('dclaw', 'turn_fixed', robot=robot)
   env.reset()
   print('stepping', flush=True)
   rng = np.random.default_rng(0)
@@ -132,8 +133,9 @@ def test_connecting_from_a_worker_thread_warns_when_signals_cannot_release(
     import threading
     def drive():
       from robel_dm import suite
-      suite.load('dclaw', 'pose_fixed', device_path={device_path!r}).close()
-      suite.load('dclaw', 'pose_fixed', device_path={device_path!r}).close()
+      robot = suite.RobotOptions({device_path!r})
+      suite.load('dclaw', 'pose_fixed', robot=robot).close()
+      suite.load('dclaw', 'pose_fixed', robot=robot).close()
     worker = threading.Thread(target=drive, name='robot')
     worker.start()
     worker.join()

@@ -415,7 +415,11 @@ def test_motor_times_are_relative_to_the_episode(tmp_path, version):
   # 6e-5 s after 10 minutes, 0.06 s after 10 days.
   pytest.importorskip('dynamixel_sdk')
   env = suite.load(
-    'dclaw', 'pose_fixed', seed=0, device_path='virtual', time_limit=1.0
+    'dclaw',
+    'pose_fixed',
+    seed=0,
+    robot=suite.RobotOptions('virtual'),
+    time_limit=1.0,
   )
   env = recording.Recorder(
     env, tmp_path / 'rec', metadata={'domain': 'dclaw', 'task': 'pose_fixed'}

@@ -293,7 +293,9 @@ def test_a_whole_bus_stall_is_not_blamed_on_the_first_motor(
 
 
 def test_a_closed_robot_physics_says_it_is_closed():
-  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  env = suite.load(
+    'dclaw', 'pose_fixed', seed=0, robot=suite.RobotOptions('virtual')
+  )
   env.reset()
   physics = env.physics
   env.close()

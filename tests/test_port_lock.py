@@ -158,7 +158,8 @@ def test_without_the_hardware_extra_the_error_names_it(missing):
       sys.modules[name] = None  # As if not installed.
     from robel_dm import suite
     try:
-      suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+      robot = suite.RobotOptions('virtual')
+      suite.load('dclaw', 'pose_fixed', seed=0, robot=robot)
     except ImportError as error:
       print(error)
     else:

@@ -205,7 +205,8 @@ def test_motor_health_and_faults_are_recorded_on_the_virtual_bus(tmp_path):
   from robel_dm.hardware.dynamixel import control_table as table  # noqa: PLC0415
 
   env = recording.Recorder(
-    suite.load('dclaw', 'pose_fixed', device_path='virtual'), tmp_path
+    suite.load('dclaw', 'pose_fixed', robot=suite.RobotOptions('virtual')),
+    tmp_path,
   )
   servos = {servo.motor_id: servo for servo in env.virtual_bus.servos}
   servos[21].set(table.PRESENT_TEMPERATURE, 52)

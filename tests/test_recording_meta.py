@@ -219,7 +219,9 @@ def test_a_file_without_a_description_says_so(tmp_path):
 
 def test_a_robot_recording_describes_its_motors(tmp_path):
   pytest.importorskip('dynamixel_sdk')
-  env = suite.load('dclaw', 'turn_fixed', seed=0, device_path='virtual')
+  env = suite.load(
+    'dclaw', 'turn_fixed', seed=0, robot=suite.RobotOptions('virtual')
+  )
   motor_ids = list(env.robot.motor_ids)
   config = env.robot_config
   valve = config.auxiliary_motor('valve').id

@@ -42,7 +42,9 @@ def robot(request, lockstep):
   """A task on an in-process virtual bus, reset; closed afterwards."""
   del lockstep  # Active from before the bus starts.
   domain, task, reset = request.param
-  env = suite.load(domain, task, seed=0, device_path='virtual', reset=reset)
+  env = suite.load(
+    domain, task, seed=0, robot=suite.RobotOptions('virtual', reset=reset)
+  )
   try:
     env.reset()
     yield env

@@ -24,7 +24,9 @@ def _torque(bus):
 
 
 def test_scripted_claw_reset_turns_the_valve_and_releases_it():
-  env = suite.load('dclaw', 'turn_random', seed=3, device_path='virtual')
+  env = suite.load(
+    'dclaw', 'turn_random', seed=3, robot=suite.RobotOptions('virtual')
+  )
   try:
     for _ in range(3):
       env.reset()
@@ -58,7 +60,9 @@ def test_stuck_finger_retries_disentangles_then_fails_naming_it(monkeypatch):
     self._data.ctrl[actuator] = 0.0  # noqa: SLF001
 
   monkeypatch.setattr(sim_robot.SimulatedRobot, 'on_write', stuck_motor_21)
-  env = suite.load('dclaw', 'turn_fixed', seed=0, device_path='virtual')
+  env = suite.load(
+    'dclaw', 'turn_fixed', seed=0, robot=suite.RobotOptions('virtual')
+  )
   try:
     with pytest.raises(resets.ResetError, match=r'\[21\]') as error:
       env.reset()
@@ -82,7 +86,10 @@ def test_manual_reset_releases_the_motors_while_the_person_works():
   person = Person()
   procedure = resets.ManualReset(wait=person)
   env = suite.load(
-    'dclaw', 'pose_fixed', seed=0, device_path='virtual', reset=procedure
+    'dclaw',
+    'pose_fixed',
+    seed=0,
+    robot=suite.RobotOptions('virtual', reset=procedure),
   )
   person.env = env
   try:
@@ -97,9 +104,9 @@ def test_manual_reset_releases_the_motors_while_the_person_works():
 
 def test_reset_choices_are_checked():
   with pytest.raises(ValueError, match="unknown reset 'bounce'"):
-    suite.load('dclaw', 'pose_fixed', device_path='virtual', reset='bounce')
-  with pytest.raises(ValueError, match='need a device_path'):
-    suite.load('dclaw', 'pose_fixed', reset='move')
+    suite.load(
+      'dclaw', 'pose_fixed', robot=suite.RobotOptions('virtual', reset='bounce')
+    )
 
 
 def _guide_ticks(angle):
@@ -109,8 +116,11 @@ def _guide_ticks(angle):
 
 def test_guide_motor_shows_the_moving_goal():
   env = suite.load(
-    'dclaw', 'screw_fixed', seed=0, device_path='virtual', guide='show'
-  )  # fmt: skip
+    'dclaw',
+    'screw_fixed',
+    seed=0,
+    robot=suite.RobotOptions('virtual', guide='show'),
+  )
   try:
     env.reset()
     bus = env.virtual_bus
@@ -128,8 +138,11 @@ def test_guide_motor_shows_the_moving_goal():
 
 def test_interactive_mode_takes_the_goal_from_the_guide():
   env = suite.load(
-    'dclaw', 'turn_fixed', seed=0, device_path='virtual', guide='interactive'
-  )  # fmt: skip
+    'dclaw',
+    'turn_fixed',
+    seed=0,
+    robot=suite.RobotOptions('virtual', guide='interactive'),
+  )
   try:
     env.reset()
     bus = env.virtual_bus
@@ -145,22 +158,23 @@ def test_interactive_mode_takes_the_goal_from_the_guide():
     env.close()
 
 
-def test_guide_options_need_a_robot():
-  with pytest.raises(ValueError, match='guide need a device_path'):
-    suite.load('dclaw', 'turn_fixed', guide='interactive')
-  # The guide is the robot's option, not the task's.
+def test_the_guide_is_the_robots_option_not_the_tasks():
   with pytest.raises(ValueError, match='interactive'):
     suite.load('dclaw', 'turn_fixed', task_kwargs={'interactive': True})
 
 
 def test_guide_needs_a_task_with_a_goal_angle():
   with pytest.raises(ValueError, match='no goal angle'):
-    suite.load('dclaw', 'pose_fixed', device_path='virtual', guide='show')
+    suite.load(
+      'dclaw', 'pose_fixed', robot=suite.RobotOptions('virtual', guide='show')
+    )
 
 
 def test_unknown_guide_mode_is_rejected():
   with pytest.raises(ValueError, match='guide must be one of'):
-    suite.load('dclaw', 'turn_fixed', device_path='virtual', guide='on')
+    suite.load(
+      'dclaw', 'turn_fixed', robot=suite.RobotOptions('virtual', guide='on')
+    )
 
 
 def test_dkitty_stand_up_sequence_runs_and_ends_upright(monkeypatch):
@@ -184,9 +198,11 @@ def test_dkitty_stand_up_sequence_runs_and_ends_upright(monkeypatch):
     tracking.SimulatedSource(poses), 'torso', clock=lambda: holder['now']
   )
   env = suite.load(
-    'dkitty', 'stand_fixed', seed=0, device_path='virtual', reset='scripted',
-    tracker=tracker,
-  )  # fmt: skip
+    'dkitty',
+    'stand_fixed',
+    seed=0,
+    robot=suite.RobotOptions('virtual', reset='scripted', tracker=tracker),
+  )
   holder['env'] = env
   try:
     env.reset()
@@ -207,7 +223,10 @@ def test_dkitty_stand_up_sequence_runs_and_ends_upright(monkeypatch):
 
 def test_dkitty_that_cannot_get_up_fails_clearly_and_is_released():
   env = suite.load(
-    'dkitty', 'walk_fixed', seed=0, device_path='virtual', reset='scripted'
+    'dkitty',
+    'walk_fixed',
+    seed=0,
+    robot=suite.RobotOptions('virtual', reset='scripted'),
   )
   try:
     env.reset()
@@ -252,7 +271,10 @@ def test_tracker_gives_the_torso_calibrates_at_reset_and_moves_the_target():
     clock=lambda: holder['now'],
   )  # fmt: skip
   env = suite.load(
-    'dkitty', 'walk_fixed', seed=0, device_path='virtual', tracker=tracker
+    'dkitty',
+    'walk_fixed',
+    seed=0,
+    robot=suite.RobotOptions('virtual', tracker=tracker),
   )
   holder['env'] = env
   try:
@@ -281,7 +303,10 @@ def _knock_over(env) -> None:
 
 def test_a_fallen_virtual_dkitty_is_stood_up_by_the_simulated_person():
   env = suite.load(
-    'dkitty', 'stand_fixed', seed=0, device_path='virtual', reset='manual'
+    'dkitty',
+    'stand_fixed',
+    seed=0,
+    robot=suite.RobotOptions('virtual', reset='manual'),
   )
   try:
     env.reset()
@@ -300,7 +325,10 @@ def test_a_fallen_virtual_dkitty_is_stood_up_by_the_simulated_person():
 
 def test_dkitty_manual_reset_waits_until_the_robot_is_stood_up():
   env = suite.load(
-    'dkitty', 'walk_fixed', seed=0, device_path='virtual', reset='manual'
+    'dkitty',
+    'walk_fixed',
+    seed=0,
+    robot=suite.RobotOptions('virtual', reset='manual'),
   )
   try:
     env.reset()
@@ -321,10 +349,6 @@ def test_robot_options_are_one_checked_value():
     suite.RobotOptions('virtual', guide='point')
   with pytest.raises(ValueError, match='device_path must name a bus'):
     suite.RobotOptions('')
-  with pytest.raises(ValueError, match='either robot= or reset'):
-    suite.load(
-      'dclaw', 'pose_fixed', robot=suite.RobotOptions('virtual'), reset='move'
-    )
   options = suite.RobotOptions('virtual', reset='move')
   with pytest.raises(dataclasses.FrozenInstanceError):
     options.reset = 'manual'

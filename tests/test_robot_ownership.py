@@ -108,7 +108,8 @@ def busy(_):  # A Pool task that reports its worker, then works on.
 
 STARTED = []
 
-env = suite.load('dclaw', 'pose_fixed', device_path=DEVICE, reset='move')
+robot = suite.RobotOptions(DEVICE, reset='move')
+env = suite.load('dclaw', 'pose_fixed', robot=robot)
 env.reset()
 for _ in range(3):
   env.step(np.zeros(9))
@@ -205,7 +206,8 @@ import json, os, signal, sys, time
 import numpy as np
 from robel_dm import suite
 from robel_dm.hardware import shutdown
-env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+robot = suite.RobotOptions('virtual')
+env = suite.load('dclaw', 'pose_fixed', seed=0, robot=robot)
 env.reset()
 bus = env.virtual_bus
 env.step(np.zeros(9))
@@ -310,7 +312,8 @@ def test_a_motor_that_cut_its_own_torque_is_named_with_its_error(claw):
 
 _STEP_ON_REQUEST = """
 import sys
-env = suite.load('dclaw', 'pose_fixed', device_path=DEVICE, reset='move')
+robot = suite.RobotOptions(DEVICE, reset='move')
+env = suite.load('dclaw', 'pose_fixed', robot=robot)
 env.reset()
 print('ready', flush=True)
 for _ in sys.stdin:  # One step per line.
@@ -369,7 +372,8 @@ _DRIVE_FROM_A_WORKER = """
 import signal, threading, time
 
 def drive():
-  env = suite.load('dclaw', 'pose_fixed', device_path=DEVICE, reset='move')
+  robot = suite.RobotOptions(DEVICE, reset='move')
+  env = suite.load('dclaw', 'pose_fixed', robot=robot)
   env.reset()
   print('stepping', flush=True)
   while True:

@@ -102,7 +102,9 @@ def lockstep(monkeypatch):
 @pytest.fixture
 def claw():
   """D'Claw Pose on an in-process virtual bus, reset; closed afterwards."""
-  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  env = suite.load(
+    'dclaw', 'pose_fixed', seed=0, robot=suite.RobotOptions('virtual')
+  )
   env.reset()
   yield env
   env.close()
@@ -186,7 +188,8 @@ def _child(device_path: str, body: str) -> subprocess.Popen:
 
 
 _STEP_FOREVER = """
-env = suite.load('dclaw', 'pose_fixed', device_path=DEVICE, reset='move')
+robot = suite.RobotOptions(DEVICE, reset='move')
+env = suite.load('dclaw', 'pose_fixed', robot=robot)
 env.reset()
 print('stepping', flush=True)
 rng = np.random.default_rng(0)
@@ -226,8 +229,8 @@ def test_garbage_collected_environment_releases_its_motors(standalone_bus):
     """
     import dynamixel_sdk as sdk
     def run():
-      env = suite.load('dclaw', 'turn_fixed', device_path=DEVICE,
-                       reset='move')
+      env = suite.load('dclaw', 'turn_fixed',
+                       robot=suite.RobotOptions(DEVICE, reset='move'))
       env.reset()
       env.step(np.zeros(9))
     run()
@@ -276,8 +279,12 @@ def test_a_burst_of_ctrl_c_cannot_interrupt_the_release(standalone_bus):
 
 
 def test_every_robot_is_released_whatever_another_release_raises(monkeypatch):
-  first = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
-  second = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  first = suite.load(
+    'dclaw', 'pose_fixed', seed=0, robot=suite.RobotOptions('virtual')
+  )
+  second = suite.load(
+    'dclaw', 'pose_fixed', seed=0, robot=suite.RobotOptions('virtual')
+  )
   try:
     first.reset()
     second.reset()
@@ -315,7 +322,9 @@ def test_after_a_fault_the_environment_refuses_to_step_until_reset(
 
 
 def test_over_current_stops_the_episode_naming_motor_and_current():
-  env = suite.load('dkitty', 'stand_fixed', seed=0, device_path='virtual')
+  env = suite.load(
+    'dkitty', 'stand_fixed', seed=0, robot=suite.RobotOptions('virtual')
+  )
   bus = env.virtual_bus
   try:
     env.reset()
@@ -437,7 +446,9 @@ def test_a_silent_bus_is_named_as_such_after_one_ping_per_motor(claw):
 
 
 def test_a_second_environment_on_the_same_port_is_refused():
-  env = suite.load('dclaw', 'pose_fixed', seed=0, device_path='virtual')
+  env = suite.load(
+    'dclaw', 'pose_fixed', seed=0, robot=suite.RobotOptions('virtual')
+  )
   try:
     path = env.robot.client._device_path  # noqa: SLF001
     other = dynamixel.DynamixelClient(path, _CLAW_IDS)

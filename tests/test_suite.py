@@ -275,22 +275,41 @@ def test_unknown_action_bounds_mode_raises_value_error(task):
     suite.load(*task, task_kwargs={'action_bounds': 'wrap'})
 
 
-def test_dm_control_suite_keywords_work():
+def test_positional_arguments_follow_dm_control_suite():
   env = suite.load(
-    domain_name='dclaw',
-    task_name='turn_fixed',
-    task_kwargs={'valve': 'valve4'},
-    environment_kwargs={'strip_singleton_obs_buffer_dim': True},
-    visualize_reward=True,
+    'dclaw',
+    'turn_fixed',
+    {'valve': 'valve4'},
+    {'strip_singleton_obs_buffer_dim': True},
   )
   assert env.reset().first()
   env.close()
-  positional = suite.load('dclaw', 'pose_fixed', {'action_bounds': 'clip'})
-  positional.close()
-  with pytest.raises(ValueError, match='both domain'):
-    suite.load('dclaw', 'pose_fixed', domain_name='dkitty')
-  with pytest.raises(ValueError, match='task is required'):
+  with pytest.raises(TypeError):
     suite.load('dclaw')
+
+
+@pytest.mark.parametrize(
+  'keyword',
+  [
+    {'device_path': 'virtual'},
+    {'robot_config': 'claw.json'},
+    {'reset': 'move'},
+    {'tracker': 'natnet:127.0.0.1,rigid_body=1'},
+    {'guide': 'show'},
+    {'domain_name': 'dclaw'},
+    {'task_name': 'pose_fixed'},
+    {'visualize_reward': True},
+  ],
+  ids=lambda keyword: next(iter(keyword)),
+)
+def test_the_robot_comes_only_through_robot_options(keyword):
+  with pytest.raises(TypeError, match='unexpected keyword argument'):
+    suite.load('dclaw', 'pose_fixed', **keyword)
+
+
+def test_robot_must_be_robot_options():
+  with pytest.raises(ValueError, match='robot must be a suite.RobotOptions'):
+    suite.load('dclaw', 'pose_fixed', robot='virtual')
 
 
 def test_dm_control_habits_are_met():

@@ -167,7 +167,10 @@ def test_missing_calibration_and_real_robots_are_refused(tmp_path):
   # Refused before any port is opened.
   with pytest.raises(ValueError, match='calibrates a simulated robot'):
     suite.load(
-      'dclaw', 'pose_fixed', device_path='/dev/nonexistent', dynamics=_truth()
+      'dclaw',
+      'pose_fixed',
+      robot=suite.RobotOptions('/dev/nonexistent'),
+      dynamics=_truth(),
     )
 
 

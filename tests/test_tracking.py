@@ -323,7 +323,9 @@ def _tracked_virtual_kitty(emit=None):
       tracker source reports; identity if None.
   """
   pytest.importorskip('dynamixel_sdk')  # The hardware extra.
-  env = suite.load('dkitty', 'stand_fixed', seed=0, device_path='virtual')
+  env = suite.load(
+    'dkitty', 'stand_fixed', seed=0, robot=suite.RobotOptions('virtual')
+  )
   simulation = env.virtual_bus.driver
 
   def now():

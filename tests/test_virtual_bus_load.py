@@ -137,7 +137,9 @@ def _soak(env, rng) -> tuple[list[float], list[float]]:
 
 @pytest.mark.parametrize('domain', sorted(_SOAK_TASKS))
 def test_a_random_fault_soak_never_stalls_a_step(domain, caplog):
-  env = suite.load(domain, _SOAK_TASKS[domain], seed=0, device_path='virtual')
+  env = suite.load(
+    domain, _SOAK_TASKS[domain], seed=0, robot=suite.RobotOptions('virtual')
+  )
   try:
     with caplog.at_level(logging.CRITICAL):  # The faults' logged errors.
       stepped, faulted = _soak(env, np.random.default_rng(0))

@@ -64,7 +64,7 @@ def _sensing_error(robot_name: str) -> np.ndarray:
     'dclaw',
     'pose_fixed',
     seed=0,
-    device_path='virtual',
+    robot=suite.RobotOptions('virtual'),
     dynamics=zoo.robot(robot_name).path,
   )
   try:

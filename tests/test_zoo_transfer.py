@@ -28,7 +28,7 @@ def test_a_transfer_record_is_made_merged_and_tabled(tmp_path, monkeypatch):
   transfer.merge([dict(record, success=0.5)], results)  # Replaces it.
   (kept,) = transfer.load_records(results)
   assert kept['success'] == 0.5
-  doc = tmp_path / 'zoo.md'
+  doc = tmp_path / transfer.DOC.name
   shutil.copy(transfer.DOC, doc)
   transfer.report([kept], doc)
   table = doc.read_text()

@@ -13,10 +13,22 @@ from typing import Any
 from absl import app, flags
 import tqdm
 
-from robel_dm import evaluation, policies, suite
+from robel_dm import commands, evaluation, policies, suite
 from robel_dm.evaluation import checks, table, task_args
 
 FLAGS = flags.FLAGS
+
+# The command's description, which --help shows.
+HELP = r"""Evaluates a policy on a robel_dm task and reports ROBEL's metrics.
+
+    python -m robel_dm.evaluate --domain=dclaw --task=pose_fixed \
+        --policy=reference --episodes=20 --output=results.json
+
+Prints one row per episode and a summary, and optionally writes JSON with the
+success rate (ROBEL's success evaluator: the `success` signal at each
+episode's last step), mean return, mean score, mean safety violations per
+episode and the control steps per second.
+"""
 
 # The flags that make a `suite.RobotOptions` (with --device_path).
 ROBOT_OPTION_FLAGS = ('robot_config', 'reset', 'guide', 'tracker')
@@ -382,3 +394,10 @@ def main(argv: list[str]) -> int:
   if FLAGS.output:
     print(f'wrote {FLAGS.output}')
   return 0
+
+
+def run() -> None:
+  """The command (`robel-evaluate`, or `python -m robel_dm.evaluate`)."""
+  define_flags()
+  commands.describe(HELP, __name__)
+  app.run(main)

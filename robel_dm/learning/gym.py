@@ -22,8 +22,8 @@ first `reset` or after an episode ended raises `ResetNeededError`.
 
 Ids: ROBEL's (`DClawPoseFixed-v0` ... `DKittyWalkRandomDynamics-v0`) and,
 for Turn and Screw with the 4-prong valve, `DClawTurnFixedValve4-v0` etc.
-`gym.make(id, seed=..., task_kwargs=..., device_path=..., ...)` passes
-`suite.load`'s arguments through.
+`gym.make(id, seed=..., task_kwargs=..., robot=suite.RobotOptions(...),
+...)` passes `suite.load`'s arguments through.
 """
 
 from typing import Any
@@ -106,8 +106,7 @@ class RobelEnv(gymnasium.Env):
       render_mode: None or 'rgb_array'.
       render_size: (height, width) of rendered frames, pixels.
       **load_kwargs: further `suite.load` arguments (`seed`, `time_limit`,
-        `device_path`, `robot_config`, `reset`, `tracker`, `guide`,
-        `environment_kwargs`).
+        `robot`, `dynamics`, `environment_kwargs`).
     """
     if render_mode not in (None, 'rgb_array'):
       raise ValueError(f'render_mode must be None or rgb_array: {render_mode}')

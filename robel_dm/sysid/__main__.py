@@ -1,4 +1,4 @@
-"""System identification from the command line.
+r"""System identification from the command line.
 
   python -m robel_dm.sysid excite --domain=dclaw --device_path=DEVICE \
       --record=DIR [--signal=steps|chirp] [--duration=10] [--episodes=1]
@@ -17,7 +17,7 @@ import sys
 from absl import app, flags
 import numpy as np
 
-from robel_dm import calibration, provenance, recording, suite
+from robel_dm import calibration, commands, provenance, recording, suite
 from robel_dm.sysid import excite as excite_lib
 from robel_dm.sysid import fit as fit_lib
 from robel_dm.tasks import excitation
@@ -190,6 +190,12 @@ def main(argv: list[str]) -> int:
     return 130
 
 
-if __name__ == '__main__':
+def run() -> None:
+  """The command (`robel-sysid`, or `python -m robel_dm.sysid`)."""
   _define_flags()
+  commands.describe(__doc__, __name__)
   app.run(main)
+
+
+if __name__ == '__main__':
+  run()

@@ -27,7 +27,7 @@ if os.environ['MUJOCO_GL'] == 'glfw':
 
 from absl import app, flags  # noqa: E402
 
-from robel_dm import policies, suite  # noqa: E402
+from robel_dm import commands, policies, suite  # noqa: E402
 from robel_dm.evaluation import task_args  # noqa: E402
 
 _OFFSCREEN_BACKENDS = ('egl', 'osmesa')
@@ -89,6 +89,12 @@ def main(argv):
   return 0
 
 
-if __name__ == '__main__':
+def run() -> None:
+  """The command (`robel-view`, or `python -m robel_dm.tools.view`)."""
   _define_flags()
+  commands.describe(__doc__, __name__)
   app.run(main)
+
+
+if __name__ == '__main__':
+  run()

@@ -157,7 +157,10 @@ def main(argv: Sequence[str] | None = None) -> None:
   """Serves a robot's motors until SIGINT or SIGTERM."""
   from absl import app  # Command line only.
 
+  from robel_dm import commands  # noqa: PLC0415 (imports absl)
+
   flag_values = _define_flags()
+  commands.describe(__doc__, __name__)
 
   def run(args: Sequence[str]) -> int:
     if len(args) > 1:

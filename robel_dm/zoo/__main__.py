@@ -21,7 +21,7 @@ from robel_dm.zoo import transfer
 
 
 def main(argv: list[str] | None = None) -> int:
-  parser = argparse.ArgumentParser(prog='python -m robel_dm.zoo')
+  parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
   commands = parser.add_subparsers(dest='command', required=True)
   commands.add_parser('list', help="the zoo's robots and what differs")
   run = commands.add_parser('evaluate', help='fill docs/zoo/transfer.json')

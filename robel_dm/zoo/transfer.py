@@ -27,7 +27,7 @@ from robel_dm import assets, evaluation, policies, provenance, suite, zoo
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 RESULTS = ROOT / 'docs' / 'zoo' / 'transfer.json'
-DOC = ROOT / 'docs' / 'zoo.md'
+DOC = ROOT / 'docs/zoo.md'
 SIMULATION = 'simulation'
 # Episode seeds from here on: used by nothing else (training, validation,
 # test and demonstration seeds lie below 10,000,000 elsewhere).

@@ -2,8 +2,5 @@
 
 from robel_dm.hardware.scan import cli
 
-# absl's --help prints the main module's docstring: make it the command's.
-__doc__ = cli.__doc__
-
 if __name__ == '__main__':
   cli.main()

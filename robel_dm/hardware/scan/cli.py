@@ -327,7 +327,10 @@ def main(argv: Sequence[str] | None = None) -> None:
   """Runs the command line; exits with its status."""
   from absl import app, flags  # Command line only.
 
+  from robel_dm import commands  # noqa: PLC0415 (imports absl)
+
   flag_values = _define_flags()
+  commands.describe(__doc__, __name__)
 
   def parse(args: Sequence[str]) -> list[str]:
     try:

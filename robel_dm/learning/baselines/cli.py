@@ -6,7 +6,7 @@ import json
 import sys
 
 from robel_dm.learning import baselines
-from robel_dm.learning.baselines import report
+from robel_dm.learning.baselines import report, scheduling
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -42,13 +42,13 @@ def main(argv: list[str] | None = None) -> int:
     elif args.command == 'report':
       report.write()
     elif args.ray_address:
-      baselines.train_ray(args.ray_address, args.only)
+      scheduling.train_ray(args.ray_address, args.only)
     else:
       if not 0 <= args.queue < args.queues:
         raise ValueError('--queue must be in [0, --queues)')
       if args.force and not args.only:
         raise ValueError('--force makes runs again: choose them with --only')
-      baselines.train_queue(
+      scheduling.train_queue(
         args.queue, args.queues, args.only, args.hours, force=args.force
       )
   except ValueError as error:

@@ -1,0 +1,98 @@
+"""How the table's runs are scheduled: queues sharing the runs round
+robin (one per core, or per machine), or one Ray task per run."""
+
+import pathlib
+import time
+
+from robel_dm.learning import baselines
+from robel_dm.learning.baselines import (
+  Run,
+  done,
+  finished,
+  forget,
+  merge_results,
+  record,
+  recorded,
+  select,
+  train_run,
+)
+
+
+def _say_recorded(run: Run, log) -> None:
+  row = baselines.recorded_row(run)
+  log(
+    f'{run.name}: recorded (success {row["success"]:.2f}, protocol '
+    f'{row.get("protocol", 1)}); --force makes it again'
+  )
+
+
+def train_queue(
+  queue: int,
+  queues: int,
+  pattern: str | None,
+  hours: float | None,
+  force: bool = False,
+) -> None:
+  """Runs this queue's share of the table, round robin, resuming; runs
+  that wait for demonstrations are tried again after the others. Runs
+  chosen by name (`pattern`) that are done are named, or with `force`
+  made again from the start."""
+  deadline = time.monotonic() + hours * 3600 if hours else None
+  log = lambda line: print(line, flush=True)  # noqa: E731
+  mine = [r for i, r in enumerate(select(pattern)) if i % queues == queue]
+  waiting = []
+  for run in mine:
+    if deadline and time.monotonic() > deadline:
+      print('time budget used up; the rest resumes on the next call')
+      return
+    if force:
+      forget(run)
+    elif finished(run) and not recorded(run):  # Its merge was cut short.
+      merge_results([record(run)])
+      continue
+    elif done(run):
+      if pattern:
+        _say_recorded(run, log)
+      continue
+    result = train_run(run, log=log)
+    if result is None:
+      waiting.append(run)
+    else:
+      merge_results([result])
+  for run in waiting:
+    result = train_run(run, log=log)
+    if result is not None:
+      merge_results([result])
+
+
+def _remote_train_run(run: Run, plan: dict, runs_dir: pathlib.Path):
+  """`train_run` in a Ray worker, with the driver's plan and run folder."""
+  # A worker process of its own: its module settings are the driver's.
+  baselines.PLAN, baselines.RUNS_DIR = plan, runs_dir
+  return train_run(run, log=lambda line: None)
+
+
+def train_ray(address: str, pattern: str | None) -> list[dict]:
+  """Every selected run as a Ray task (one CPU each); the records merged
+  into docs/baselines.json as they end. `address` 'local' starts a Ray
+  instance on this machine for the call."""
+  from robel_dm.evaluation import workers  # noqa: PLC0415
+
+  chosen = [
+    run for run in select(pattern) if not done(run) or not recorded(run)
+  ]
+  with workers.ray_session(address) as ray:
+    remote = ray.remote(num_cpus=1)(_remote_train_run)
+    settings = baselines.PLAN, baselines.RUNS_DIR
+    pending = {remote.remote(run, *settings): run for run in chosen}
+    records = []
+    while pending:
+      ready, _ = ray.wait(list(pending))
+      for ref in ready:
+        run = pending.pop(ref)
+        result = ray.get(ref)
+        if result is not None:
+          records.append(result)
+          merge_results([result])
+        print(f'{run.name}: {"done" if result else "waits for demos"}')
+    return records
