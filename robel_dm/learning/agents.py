@@ -102,7 +102,7 @@ _SAC_LR3E4 = {
 }
 # The default: the same with learning rate 1e-3, which reached 80% success
 # in fewer env steps on Pose, Stand and Turn (benchmarks/agent_settings.py;
-# docs/baselines.md, "Choosing the default agent").
+# docs/baselines_history.md, "Choosing the default agent").
 _SAC = {**_SAC_LR3E4, 'learning_rate': 1e-3}
 # Ten updates per env step, made stable by regularized critics (DroQ:
 # dropout and layer normalization): fewer env steps to 80% success (robot

@@ -441,8 +441,16 @@ def record(run: Run) -> dict:
   started_from = {}
   if source is not None:
     # Its networks had learned from the source's env steps first.
+    end = evaluations(source)[-1]
     started_from = {
-      'started_from': {'run': source.name, 'env_steps': _curve_end(source)}
+      'started_from': {
+        'run': source.name,
+        'env_steps': _curve_end(source),
+        'minutes': {
+          'wall': end['wall_time'] / 60,
+          'cpu': end.get('cpu_time', 0.0) / 60,
+        },
+      }
     }
   return {
     **started_from,

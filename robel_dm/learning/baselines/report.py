@@ -101,7 +101,7 @@ def _to_80(group: list[dict], unit: str) -> str:
   """The median over seeds of the wall or CPU minutes to 80%; unsolved
   seeds count as more than the run."""
   values = sorted(
-    row['minutes_to_80'][unit]
+    selection.minutes_to_80(row, unit)
     if baselines.solved(row) and row.get('minutes_to_80')
     else selection.UNSOLVED
     for row in group

@@ -40,6 +40,15 @@ def steps_to_80(row: dict) -> float:
   return before + row['steps_to_80']
 
 
+def minutes_to_80(row: dict, unit: str) -> float | None:
+  """The wall or CPU minutes to 80% of a solved row, those of the run it
+  started from included; None if not recorded."""
+  if not baselines.solved(row) or not row.get('minutes_to_80'):
+    return None
+  source = (row.get('started_from') or {}).get('minutes', {})
+  return source.get(unit, 0.0) + row['minutes_to_80'][unit]
+
+
 def median_steps_to_80(group: Iterable[dict]) -> float:
   """The median over every seed, unsolved seeds counted as UNSOLVED (so
   the median is UNSOLVED unless most seeds are solved)."""
