@@ -12,6 +12,7 @@ stopping its process for a while (SIGSTOP).
 
 import logging
 import os
+import pathlib
 import signal
 import subprocess
 import sys
@@ -23,7 +24,6 @@ import numpy as np
 import pytest
 import test_robot_safety as safety
 
-from robel_dm import suite
 from robel_dm.hardware import config as config_lib
 from robel_dm.hardware.dynamixel import client as dynamixel
 from robel_dm.hardware.dynamixel.protocol import Instruction
@@ -87,7 +87,7 @@ def test_replies_dropped_unread_do_not_stall_a_silent_motor(
 
 # --- A random-fault soak ------------------------------------------------------
 
-_SOAK_TASKS = {'dclaw': 'pose_fixed', 'dkitty': 'stand_fixed'}
+_BENCHMARKS = pathlib.Path(__file__).resolve().parents[1] / 'benchmarks'
 _SOAK_STEPS = 150
 # A stall, not a speed, is what this guards against (10 s per packet to a
 # silent motor, steps of 20-50 s). A step that ends on a silent motor takes
@@ -98,55 +98,17 @@ _SOAK_STEPS = 150
 _STALL_S = 5.0
 
 
-def _inject_random_fault(bus, rng) -> None:
-  """Often none; else one on a random motor: silence, corrupted replies,
-  lost goals, a motor gone or back."""
-  motor_id = int(rng.choice([servo.motor_id for servo in bus.servos]))
-  kind = rng.integers(10)
-  if kind == 0:
-    bus.faults.mute_next(motor_id, int(rng.integers(1, 4)))
-  elif kind == 1:
-    bus.faults.corrupt_next(motor_id, int(rng.integers(1, 3)))
-  elif kind == 2:
-    bus.faults.lose_next_write(motor_id, int(rng.integers(1, 3)))
-  elif kind == 3:
-    bus.faults.set_absent(motor_id, bool(rng.integers(2)))
+@pytest.mark.parametrize('domain', ['dclaw', 'dkitty'])
+def test_a_random_fault_soak_never_stalls_a_step(domain, caplog, monkeypatch):
+  # The benchmark's soak: steps with random faults (silence, corrupted
+  # replies, lost goals, a motor gone or back), reset after a fault.
+  monkeypatch.syspath_prepend(str(_BENCHMARKS))
+  import virtual_bus_soak  # noqa: PLC0415
 
-
-def _soak(env, rng) -> tuple[list[float], list[float]]:
-  """Steps with random faults, reset after a fault or an episode's end;
-  returns the durations of the steps that went through, and of those that
-  raised."""
-  bus, size = env.virtual_bus, env.action_spec().shape
-  stepped, faulted = [], []
-  env.reset()
-  for _ in range(_SOAK_STEPS):
-    _inject_random_fault(bus, rng)
-    start = time.monotonic()
-    try:
-      last = env.step(rng.uniform(-1, 1, size)).last()
-      stepped.append(time.monotonic() - start)
-    except dynamixel.DynamixelError:
-      faulted.append(time.monotonic() - start)
-      bus.faults.clear()
-      last = True
-    if last:
-      env.reset()  # After a fault: checks the bus, torque on again.
-  return stepped, faulted
-
-
-@pytest.mark.parametrize('domain', sorted(_SOAK_TASKS))
-def test_a_random_fault_soak_never_stalls_a_step(domain, caplog):
-  env = suite.load(
-    domain, _SOAK_TASKS[domain], seed=0, robot=suite.RobotOptions('virtual')
-  )
-  try:
-    with caplog.at_level(logging.CRITICAL):  # The faults' logged errors.
-      stepped, faulted = _soak(env, np.random.default_rng(0))
-  finally:
-    env.close()
+  with caplog.at_level(logging.CRITICAL):  # The faults' logged errors.
+    stepped, faulted = virtual_bus_soak.soak(domain, _SOAK_STEPS, seed=0)
   assert len(faulted) >= 3, 'too few faults reached a step: nothing tested'
-  slowest = sorted(stepped + faulted)[-5:]
+  slowest = sorted([*stepped, *faulted])[-5:]
   assert slowest[-1] < _STALL_S, f'slowest steps (s): {slowest}'
 
 
