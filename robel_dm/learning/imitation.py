@@ -56,40 +56,6 @@ class FitConfig:
 EpochCallback = Callable[[int, policies.NumpyPolicy, float], None]
 
 
-def fit(
-  data: demos.Transitions,
-  hidden: Sequence[int],
-  seed: int,
-  epochs: int,
-  batch_size: int,
-  learning_rate: float,
-  metadata: dict[str, Any],
-  on_epoch: EpochCallback | None = None,
-  every: int = 50,
-) -> policies.NumpyPolicy:
-  """`fit_policy` with its options as arguments.
-
-  Kept for the callers in `learning.train`; new code passes a `FitConfig`
-  to `fit_policy`.
-
-  Args:
-    data: the demonstrations.
-    hidden: see `FitConfig`.
-    seed: see `FitConfig`.
-    epochs: see `FitConfig`.
-    batch_size: see `FitConfig`.
-    learning_rate: see `FitConfig`.
-    metadata: the policy's metadata (task, observation keys, ...).
-    on_epoch: see `fit_policy`.
-    every: see `FitConfig`.
-
-  Returns:
-    The fitted policy.
-  """
-  config = FitConfig(hidden, seed, epochs, batch_size, learning_rate, every)
-  return fit_policy(data, config, metadata, on_epoch)
-
-
 def fit_policy(
   data: demos.Transitions,
   config: FitConfig,

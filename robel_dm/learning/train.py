@@ -423,23 +423,28 @@ def _clone(config: RunConfig, run: Run, data, metadata) -> None:
   hyper = config.agent.hyperparameters
   run.start_clocks()
   if not run.history:
-    untrained = imitation.fit(
-      data, config.layers, config.seed, 0, 1, 1e-3, metadata
+    untrained = imitation.fit_policy(
+      data,
+      imitation.FitConfig(config.layers, config.seed, 0, 1, 1e-3),
+      metadata,
     )
     run.record(untrained, 0, epoch=0, demo_transitions=len(data))
   # Behaviour cloning is cheap: a resumed run starts over from the data.
-  imitation.fit(
-    data,
+  fit = imitation.FitConfig(
     config.layers,
     config.seed,
     config.steps,
     hyper['batch_size'],
     hyper['learning_rate'],
+    every=config.eval_every,
+  )
+  imitation.fit_policy(
+    data,
+    fit,
     metadata,
-    on_epoch=lambda epoch, policy, loss: run.record(
+    lambda epoch, policy, loss: run.record(
       policy, 0, epoch=epoch, loss=loss, demo_transitions=len(data)
     ),
-    every=config.eval_every,
   )
 
 
