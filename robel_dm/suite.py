@@ -71,6 +71,29 @@ def _unknown(kind: str, name: str, known) -> ValueError:
   return ValueError(f'unknown {kind} {name!r}; expected one of {known}.{hint}')
 
 
+def _checked_task(domain: str, task: str, task_kwargs) -> dict:
+  """The domain's tasks, once `task` is one of them and `task_kwargs` has
+  no dm_control-style random state; a ValueError naming the fix if not."""
+  if domain not in registry.DOMAINS:
+    raise _unknown('domain', domain, registry.DOMAINS)
+  tasks = registry.DOMAINS[domain]
+  if task not in tasks:
+    owners = [d for d, ts in registry.DOMAINS.items() if task in ts]
+    if owners:
+      raise ValueError(
+        f'unknown {domain} task {task!r}: that task belongs to {owners[0]} '
+        f'(suite.load({owners[0]!r}, {task!r}))'
+      )
+    raise _unknown(f'{domain} task', task, tasks)
+  if 'random' in (task_kwargs or {}):
+    raise ValueError(
+      "task_kwargs={'random': ...}: robel_dm tasks take no random state; "
+      'pass seed= to suite.load (dm_control.suite passes it as '
+      "task_kwargs['random'])"
+    )
+  return tasks
+
+
 def load(
   domain: str,
   task: str,
@@ -113,24 +136,7 @@ def load(
     calibration.CalibrationError: for a malformed calibration or one of
       another robot.
   """
-  if domain not in registry.DOMAINS:
-    raise _unknown('domain', domain, registry.DOMAINS)
-  tasks = registry.DOMAINS[domain]
-  if task not in tasks:
-    owners = [d for d, ts in registry.DOMAINS.items() if task in ts]
-    if owners:
-      raise ValueError(
-        f'unknown {domain} task {task!r}: that task belongs to {owners[0]} '
-        f'(suite.load({owners[0]!r}, {task!r}))'
-      )
-    raise _unknown(f'{domain} task', task, tasks)
-
-  if 'random' in (task_kwargs or {}):
-    raise ValueError(
-      "task_kwargs={'random': ...}: robel_dm tasks take no random state; "
-      'pass seed= to suite.load (dm_control.suite passes it as '
-      "task_kwargs['random'])"
-    )
+  tasks = _checked_task(domain, task, task_kwargs)
 
   def make_task() -> base.RobelTask:
     try:
