@@ -153,18 +153,7 @@ class RobelTask(composer.Task):
       raise ValueError(f'observation_noise must be >= 0: {observation_noise}')
     if episode_steps <= 0:
       raise ValueError(f'episode_steps must be positive: {episode_steps}')
-    if isinstance(observation_keys, str):
-      observation_keys = (observation_keys,)
-    keys = tuple(observation_keys or self.DEFAULT_OBSERVATION_KEYS)
-    unknown = [key for key in keys if key not in self.FEATURES]
-    if unknown:
-      raise ValueError(
-        f'unknown observation keys {unknown}; this task offers '
-        f'{list(self.FEATURES)}'
-      )
-    if len(set(keys)) != len(keys):
-      raise ValueError(f'repeated observation keys: {keys}')
-
+    keys = self._checked_keys(observation_keys)
     self._arena = arena
     self._robot = robot
     self._root_joint = root_joint
@@ -176,7 +165,6 @@ class RobelTask(composer.Task):
       control_timestep=control_timestep,
       physics_timestep=constants.PHYSICS_TIMESTEP,
     )
-
     self._sensed_joints = tuple(robot.joints) + tuple(extra_sensed_joints)
     self._extra_position_widths = np.asarray(extra_position_widths, float)
     self._extra_velocity_widths = np.asarray(extra_velocity_widths, float)
@@ -186,6 +174,27 @@ class RobelTask(composer.Task):
         dynamics, randomizer_targets or randomization.Targets()
       )
 
+    self._allocate_state(robot, observation_noise)
+    self._make_observables(keys)
+
+  def _checked_keys(self, observation_keys) -> tuple[str, ...]:
+    """The agent's observation keys: the given ones or the task's default,
+    each a feature of the task, none repeated."""
+    if isinstance(observation_keys, str):
+      observation_keys = (observation_keys,)
+    keys = tuple(observation_keys or self.DEFAULT_OBSERVATION_KEYS)
+    unknown = [key for key in keys if key not in self.FEATURES]
+    if unknown:
+      raise ValueError(
+        f'unknown observation keys {unknown}; this task offers '
+        f'{list(self.FEATURES)}'
+      )
+    if len(set(keys)) != len(keys):
+      raise ValueError(f'repeated observation keys: {keys}')
+    return keys
+
+  def _allocate_state(self, robot, observation_noise: float) -> None:
+    """The buffers a step reuses: joint state, features and signals."""
     num_actions = len(robot.actuators)
     num_sensed = len(self._sensed_joints)
     self._num_robot_joints = len(robot.joints)
@@ -234,6 +243,9 @@ class RobelTask(composer.Task):
     self._success = np.zeros((), dtype=bool)
     self._safety = np.zeros(len(SAFETY_FIELDS), dtype=np.int32)
 
+  def _make_observables(self, keys: tuple[str, ...]) -> None:
+    """The features as observables (the agent's enabled), then the score,
+    success, safety and (when enabled) reward terms."""
     self._task_observables = collections.OrderedDict()
     ordered = keys + tuple(k for k in self.FEATURES if k not in keys)
     for name in ordered:
