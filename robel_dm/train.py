@@ -37,7 +37,11 @@ def _define_run_flags() -> None:
     'task_kwargs', '', 'Task arguments: JSON or key=value,key=value.'
   )
   flags.DEFINE_enum(
-    'algo', agents.DEFAULT, sorted(agents.AGENTS), 'Learning agent.'
+    'algo',
+    agents.DEFAULT,
+    sorted(agents.AGENTS),
+    f'Learning agent ({agents.DEFAULT} in simulation, {agents.ROBOT_DEFAULT} '
+    'with --device_path unless given).',
   )
   flags.DEFINE_integer('steps', 30_000, 'Env steps (bc: epochs).')
   flags.DEFINE_integer('seed', 0, 'Seed of the agent and the tasks.')
@@ -193,6 +197,13 @@ def main(argv):
   return 0
 
 
+def _algo() -> str:
+  """The agent: the flag's if given, else the default of where it runs."""
+  if FLAGS['algo'].present or FLAGS.device_path is None:
+    return FLAGS.algo
+  return agents.ROBOT_DEFAULT
+
+
 def _run_config():
   """The flags' `learning.train.RunConfig`."""
   from robel_dm.evaluation import task_args  # noqa: PLC0415
@@ -203,7 +214,7 @@ def _run_config():
     domain=FLAGS.domain,
     task=FLAGS.task,
     task_kwargs=task_args.parse_task_kwargs(FLAGS.task_kwargs),
-    algo=FLAGS.algo,
+    algo=_algo(),
     seed=FLAGS.seed,
     steps=FLAGS.steps,
     num_envs=FLAGS.num_envs,

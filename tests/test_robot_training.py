@@ -506,3 +506,23 @@ def test_behaviour_cloning_uses_the_robot_to_evaluate(tmp_path, demonstrations):
   assert history[0]['epoch'] == 20
   assert (tmp_path / train_lib.BEST_POLICY).is_file()
   assert _recorded_steps(tmp_path / robot.RECORDING) == 80
+
+
+def test_a_robot_run_learns_with_the_robot_agent_unless_told(tmp_path):
+  root = pathlib.Path(__file__).resolve().parents[1]
+  base = [sys.executable, '-m', 'robel_dm.train', '--domain=dclaw',
+          '--task=pose_fixed', '--steps=16', '--eval_every=16',
+          '--eval_episodes=1']  # fmt: skip
+  for extra, algo in (
+    (['--device_path=virtual'], 'droq'),
+    (['--device_path=virtual', '--algo=sac'], 'sac'),
+    ([], 'sac'),
+  ):
+    output = tmp_path / algo / str(len(extra))
+    subprocess.run(
+      [*base, *extra, f'--output_dir={output}'],
+      cwd=root, check=True, capture_output=True, timeout=600,
+      env={**os.environ, 'MUJOCO_GL': 'egl'},
+    )  # fmt: skip
+    config = json.loads((output / 'config.json').read_text())
+    assert config['algo'] == algo, extra

@@ -224,6 +224,9 @@ AGENTS: dict[str, Agent] = {
   )
 }
 DEFAULT = 'sac'
+# On a robot env steps are the budget, not CPU: fewer of them to 80% on
+# Pose, Turn and Stand (docs/robot_training.md, Sample-efficient learning).
+ROBOT_DEFAULT = 'droq'
 
 
 def updates_per_step(agent: Agent) -> float:
