@@ -194,23 +194,15 @@ def _recorder(env, config: EvalConfig) -> recording.Recorder:
     return recording.Recorder(
       env,
       config.record,
-      metadata={
-        'domain': config.domain,
-        'task': config.task,
-        'task_kwargs': config.task_kwargs or {},
-        'seed': config.seed,
-        'policy': config.policy_name,
-        'device_path': config.robot and config.robot.device_path,
-        'dynamics': config.dynamics,
-      },
+      metadata=_settings(config),
     )
   except recording.RecordingError:
     env.close()
     raise
 
 
-def _head(config: EvalConfig) -> dict[str, Any]:
-  """What the results start with: the run's settings and provenance."""
+def _settings(config: EvalConfig) -> dict[str, Any]:
+  """The run's settings, as its results and its recording name them."""
   return {
     'domain': config.domain,
     'task': config.task,
@@ -219,6 +211,13 @@ def _head(config: EvalConfig) -> dict[str, Any]:
     'seed': config.seed,
     'device_path': config.robot and config.robot.device_path,
     'dynamics': config.dynamics,
+  }
+
+
+def _head(config: EvalConfig) -> dict[str, Any]:
+  """What the results start with: the run's settings and provenance."""
+  return {
+    **_settings(config),
     'episodes_requested': config.episodes,
     'provenance': provenance.describe(),
   }
