@@ -59,7 +59,8 @@ def _record(directory: pathlib.Path, robot: str) -> None:
   domain, task, device = ROBOTS[robot]
   interval = format_lib.FLUSH_INTERVAL
   format_lib.FLUSH_INTERVAL = 1e9  # Batches as flush() makes them.
-  env = suite.load(domain, task, seed=0, robot=suite.RobotOptions(device))
+  robot_options = suite.RobotOptions(device) if device else None  # Sim.
+  env = suite.load(domain, task, seed=0, robot=robot_options)
   env = recording.Recorder(
     env, directory / 'live', metadata={'domain': domain, 'task': task}
   )

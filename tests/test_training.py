@@ -336,8 +336,9 @@ def test_bad_budget_and_start_settings_are_named(changes, message):
     _config(**changes).check()
 
 
-def test_a_warm_start_begins_where_its_source_ended(trained_run, tmp_path):
-  source, history = trained_run
+def test_a_warm_start_begins_where_its_source_ended(tmp_path):
+  source = tmp_path / 'source'
+  history = learning.train(_config(steps=152, eval_every=152), source, **QUIET)
   config = _config(init_from=str(source), steps=152, eval_every=152)
   rows = learning.train(config, tmp_path / 'warm', **QUIET)
   # The untrained evaluation is the source's last actor, on the same
