@@ -16,6 +16,7 @@ import textwrap
 import time
 
 import pytest
+import test_robot_safety as safety
 
 from robel_dm.hardware import config
 from robel_dm.hardware.dynamixel import client as dynamixel
@@ -56,24 +57,6 @@ def standalone_bus(monkeypatch):
     except subprocess.TimeoutExpired:
       process.kill()
       process.wait()
-
-
-def _torque(device_path: str) -> dict[int, int]:
-  """Torque Enable of each motor, read through the SDK at 1 Mbps."""
-  port = sdk.PortHandler(device_path)
-  assert port.openPort()
-  try:
-    packets = sdk.PacketHandler(2.0)
-    values = {}
-    for motor_id in _CLAW_IDS:
-      value, result, _ = packets.read1ByteTxRx(
-        port, motor_id, table.TORQUE_ENABLE.address
-      )
-      assert result == sdk.COMM_SUCCESS, motor_id
-      values[motor_id] = value
-    return values
-  finally:
-    port.closePort()
 
 
 def _wait_for_bytes(port, count: int) -> None:
@@ -143,7 +126,7 @@ def test_a_refused_second_program_leaves_the_holders_port_untouched(
     assert holder.read_register(table.TORQUE_ENABLE) == torque_on
   finally:
     holder.disconnect()
-  assert _torque(device_path) == dict.fromkeys(_CLAW_IDS, 0)
+  assert safety.read_torque(device_path) == dict.fromkeys(_CLAW_IDS, 0)
 
 
 @pytest.mark.parametrize(

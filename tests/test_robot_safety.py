@@ -149,7 +149,7 @@ def standalone_bus(monkeypatch):
         process.wait()
 
 
-def _torque(device_path: str, ids=tuple(_CLAW_IDS)) -> dict[int, int]:
+def read_torque(device_path: str, ids=tuple(_CLAW_IDS)) -> dict[int, int]:
   """Torque Enable of each motor, read through the SDK."""
   port = sdk.PortHandler(device_path)
   assert port.openPort()
@@ -216,7 +216,7 @@ def _wait_for_port_lock(pid: int) -> None:
 
 def _torque_on_after(child: subprocess.Popen, device_path: str) -> list[int]:
   child.wait(30)
-  return [i for i, on in _torque(device_path).items() if on]
+  return [i for i, on in read_torque(device_path).items() if on]
 
 
 # --- Ends of a session --------------------------------------------------------
@@ -247,7 +247,7 @@ def test_garbage_collected_environment_releases_its_motors(standalone_bus):
   output, errors = child.communicate(timeout=60)
   assert child.returncode == 0, errors
   assert json.loads(output.strip().splitlines()[-1]) == [0] * 10
-  assert _torque(device_path, _CLAW_IDS + [50]) == dict.fromkeys(
+  assert read_torque(device_path, _CLAW_IDS + [50]) == dict.fromkeys(
     _CLAW_IDS + [50], 0
   )
 
