@@ -37,7 +37,7 @@ lockstep = safety.lockstep
 claw = safety.claw
 standalone_bus = safety.standalone_bus
 _child = safety._child  # noqa: SLF001
-_torque = safety._torque  # noqa: SLF001
+_torque = safety.read_torque
 _wait_for_line = safety._wait_for_line  # noqa: SLF001
 _STARTUP_TIMEOUT_S = safety._STARTUP_TIMEOUT_S  # noqa: SLF001
 

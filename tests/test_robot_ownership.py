@@ -34,7 +34,7 @@ sdk = pytest.importorskip('dynamixel_sdk')
 
 claw = safety.claw
 standalone_bus = safety.standalone_bus
-_torque = safety._torque  # noqa: SLF001
+_torque = safety.read_torque
 _wait_for_line = safety._wait_for_line  # noqa: SLF001
 _STARTUP_TIMEOUT_S = safety._STARTUP_TIMEOUT_S  # noqa: SLF001
 
