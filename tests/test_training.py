@@ -10,7 +10,7 @@ import pytest
 pytest.importorskip('stable_baselines3')
 pytest.importorskip('sbx')
 
-from robel_dm import evaluation, policies  # noqa: E402
+from robel_dm import evaluation, policies, provenance  # noqa: E402
 from robel_dm.learning import agents, demos  # noqa: E402
 from robel_dm.learning import train as learning  # noqa: E402
 
@@ -63,7 +63,7 @@ def test_the_best_evaluated_policy_is_kept(tmp_path, monkeypatch):
   # Evaluations that rise then fall: the best file holds the second actor.
   scores = iter([0.1, 0.9, 0.2])
 
-  def fake_evaluate(policy, config, episodes):
+  def fake_evaluate(policy, config, episodes, evaluations=None):
     score = next(scores)
     fake_evaluate.seen.append((score, policy.act(np.zeros(27))))
     return {'success_rate': 0.0, 'mean_score': score, 'mean_return': 0.0,
@@ -84,7 +84,7 @@ def test_the_best_evaluated_policy_is_kept(tmp_path, monkeypatch):
 def test_evaluations_use_seeds_no_training_episode_uses(monkeypatch):
   seen = {}
 
-  def fake(config):
+  def fake(config, **reuse):
     seen['seed'] = config.seed
     return {'success_rate': 0, 'mean_score': 0, 'mean_return': 0,
             'safety': {}}  # fmt: skip
@@ -95,6 +95,50 @@ def test_evaluations_use_seeds_no_training_episode_uses(monkeypatch):
   training_seeds = {config.seed * 1000 + i for i in range(config.num_envs)}
   evaluation_seeds = set(range(seen['seed'], seen['seed'] + 50))
   assert not training_seeds & evaluation_seeds
+
+
+def test_a_run_builds_one_evaluation_environment(tmp_path, monkeypatch):
+  # Three evaluations, one environment and one provenance read; the rows
+  # equal those of evaluations that each build their own.
+  loads, reads = [], []
+  real_load, real_describe = learning.suite.load, provenance.describe
+
+  def load(domain, task, *args, seed=None, **kwargs):
+    loads.append(seed)
+    return real_load(domain, task, *args, seed=seed, **kwargs)
+
+  def describe():
+    reads.append(1)
+    return real_describe()
+
+  monkeypatch.setattr(learning.suite, 'load', load)
+  monkeypatch.setattr(provenance, 'describe', describe)
+  config = _config(eval_episodes=2)
+  history = learning.train(config, tmp_path, **QUIET)
+  assert len(history) == 3
+  assert loads.count(learning._eval_seed(config)) == 1 and len(reads) == 1
+  alone = learning.evaluate_policy(
+    policies.load(tmp_path / 'policy.npz'), config, 2
+  )
+  assert alone == {key: history[-1][key] for key in alone}
+
+
+def test_evaluate_in_a_given_environment_equals_a_new_one():
+  config = evaluation.EvalConfig('dkitty', 'walk_random_dynamics', 2, seed=7)
+  alone = evaluation.evaluate(config)
+  env = learning.suite.load('dkitty', 'walk_random_dynamics', seed=1)
+  try:
+    evaluation.evaluate(dataclasses.replace(config, seed=11), env=env)
+    again = evaluation.evaluate(
+      config, env=env, provenance_record={'git_revision': 'x'}
+    )
+    assert again['records'] == alone['records']
+    assert again['provenance'] == {'git_revision': 'x'}
+    env.step(np.zeros(env.action_spec().shape))  # Left open.
+  finally:
+    env.close()
+  with pytest.raises(ValueError, match='given env'):
+    evaluation.evaluate(dataclasses.replace(config, workers=2), env=env)
 
 
 def test_resume_continues_with_every_transition(trained_run):

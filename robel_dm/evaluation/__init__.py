@@ -19,6 +19,7 @@ import dataclasses
 from typing import Any
 
 from robel_dm import policies, provenance, recording, suite
+from robel_dm.environment import Environment
 from robel_dm.evaluation import episodes, workers
 
 
@@ -133,11 +134,23 @@ class EvalConfig:
     return self.policy if isinstance(self.policy, str) else repr(self.policy)
 
 
-def evaluate(config: EvalConfig) -> dict[str, Any]:
+def evaluate(
+  config: EvalConfig,
+  *,
+  env: Environment | None = None,
+  provenance_record: dict[str, Any] | None = None,
+) -> dict[str, Any]:
   """Runs the episodes of `config` and returns the metrics.
 
   Args:
     config: what to run, and how.
+    env: a simulated environment of `config`'s task to run the episodes
+      in, for a caller that evaluates many policies (training): built by
+      the caller, left open. Every episode starts from a seeded reset, so
+      the records equal those of a new environment. None builds one.
+    provenance_record: the provenance the results carry, for a caller that
+      read it once (`provenance.describe()`) for many evaluations; None
+      reads it.
 
   Returns:
     A JSON-serializable dict of per-episode records, summary metrics,
@@ -145,11 +158,23 @@ def evaluate(config: EvalConfig) -> dict[str, Any]:
     machine).
 
   Raises:
-    ValueError: for bad arguments (unknown task or policy).
+    ValueError: for bad arguments (unknown task or policy, or an `env`
+      with what needs an environment of its own).
   """
+  if env is not None and (
+    config.distributed or config.robot or config.record or config.dynamics
+  ):
+    raise ValueError(
+      'a given env runs simulated episodes here: no workers, Ray, robot, '
+      'recording or dynamics'
+    )
   # A policy file is read and checked against the task before anything is
   # built (and a robot moves); None for policies that are not files.
   checked = _checked_policy(config)
+  if env is not None:
+    tally = episodes.Tally(_head(config, provenance_record), config.on_episode)
+    _run_here(config, env, _policy(config, env, checked), tally)
+    return tally.results()
   env = suite.load(
     config.domain,
     config.task,
@@ -160,7 +185,7 @@ def evaluate(config: EvalConfig) -> dict[str, Any]:
   )
   if config.record is not None:
     env = _recorder(env, config)
-  tally = episodes.Tally(_head(config), config.on_episode)
+  tally = episodes.Tally(_head(config, provenance_record), config.on_episode)
   try:
     act = _policy(config, env, checked)
     if config.distributed:
@@ -214,12 +239,14 @@ def _settings(config: EvalConfig) -> dict[str, Any]:
   }
 
 
-def _head(config: EvalConfig) -> dict[str, Any]:
+def _head(
+  config: EvalConfig, provenance_record: dict[str, Any] | None
+) -> dict[str, Any]:
   """What the results start with: the run's settings and provenance."""
   return {
     **_settings(config),
     'episodes_requested': config.episodes,
-    'provenance': provenance.describe(),
+    'provenance': provenance_record or provenance.describe(),
   }
 
 

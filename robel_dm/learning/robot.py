@@ -498,7 +498,7 @@ def _finish(run: train_lib.Run, config, output: pathlib.Path) -> None:
   after Ctrl-C or a fault that stopped it)."""
   from robel_dm.learning import curves  # noqa: PLC0415
 
-  run.telemetry.close()
+  run.close()
   curves.plot_run(
     run.log_path,
     output / train_lib.CURVE,

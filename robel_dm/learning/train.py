@@ -36,7 +36,7 @@ from typing import Any
 
 import gymnasium
 
-from robel_dm import evaluation, policies, suite
+from robel_dm import evaluation, policies, provenance, suite
 from robel_dm.learning import (
   agents,
   curves,
@@ -121,20 +121,61 @@ def metadata_of(config: RunConfig) -> dict[str, Any]:
   }
 
 
+def _eval_seed(config: RunConfig) -> int:
+  return EVAL_SEED_OFFSET + config.seed * 1000
+
+
+class Evaluations:
+  """What a run's evaluations share: one simulated environment (each
+  episode starts from a seeded reset, so the records equal a new
+  environment's) and the provenance, read once, both made when first
+  needed."""
+
+  def __init__(self, config: RunConfig):
+    self._config = config
+    self._env = None
+    self._provenance = None
+
+  def reused(self) -> tuple[Any, dict[str, Any]]:
+    """The run's evaluation environment and provenance."""
+    if self._env is None:
+      config = self._config
+      self._env = suite.load(
+        config.domain,
+        config.task,
+        seed=_eval_seed(config),
+        task_kwargs=config.task_kwargs,
+      )
+      self._provenance = provenance.describe()
+    return self._env, self._provenance
+
+  def close(self) -> None:
+    if self._env is not None:
+      self._env.close()
+      self._env = None
+
+
 def evaluate_policy(
-  policy: policies.NumpyPolicy, config: RunConfig, episodes: int
+  policy: policies.NumpyPolicy,
+  config: RunConfig,
+  episodes: int,
+  evaluations: Evaluations | None = None,
 ) -> dict[str, Any]:
   """ROBEL's metrics of a policy (ROBEL's reward, no penalty), on
-  episodes seeded apart from every training episode."""
+  episodes seeded apart from every training episode; in the environment of
+  `evaluations` when given (a run's), else in a new one."""
+  env, record = (None, None) if evaluations is None else evaluations.reused()
   results = evaluation.evaluate(
     evaluation.EvalConfig(
       config.domain,
       config.task,
       episodes,
       policy=policy,
-      seed=EVAL_SEED_OFFSET + config.seed * 1000,
+      seed=_eval_seed(config),
       task_kwargs=config.task_kwargs,
-    )
+    ),
+    env=env,
+    provenance_record=record,
   )
   return {
     'success_rate': results['success_rate'],
@@ -180,6 +221,12 @@ class Run:
     self.history: list[dict] = []
     self.best: dict | None = None
     self._wall = self._cpu = self._evaluating = 0.0
+    self.evaluations = Evaluations(config)
+
+  def close(self) -> None:
+    """Closes the run's telemetry and evaluation environment."""
+    self.telemetry.close()
+    self.evaluations.close()
 
   def load_history(self) -> None:
     if self.log_path.is_file():
@@ -221,7 +268,9 @@ class Run:
     policy.save(self.output / POLICY)
     start = time.perf_counter()
     if evaluator is None:
-      metrics = evaluate_policy(policy, self.config, self.config.eval_episodes)
+      metrics = evaluate_policy(
+        policy, self.config, self.config.eval_episodes, self.evaluations
+      )
     else:
       metrics = evaluator(policy)
     row = {
@@ -374,7 +423,7 @@ def train(
     else:
       _reinforce(config, run, data, metadata, resume)
   finally:
-    run.telemetry.close()
+    run.close()
   curves.plot_run(
     run.log_path,
     output / CURVE,
