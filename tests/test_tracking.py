@@ -90,7 +90,7 @@ def test_y_up_tracker_frame_is_converted_to_z_up():
     clock, (0.5, 0.2, -0.1), level_in_y_up, velocity=(0.0, 0.3, 0.0)
   )
   tracker = tr.TorsoTracker(
-    source, 'torso', frame_rotation=tr.Y_UP_TO_Z_UP, clock=clock
+    source, 'torso', frames=tr.Frames(tr.Y_UP_TO_Z_UP), clock=clock
   )
   start, quaternion, _, _ = tracker.torso_state()
   # Tracker (x, y, z) -> world (x, -z, y).
@@ -136,7 +136,7 @@ def test_origin_calibration_levels_position_and_heading_keeps_tilt():
   tracker = tr.TorsoTracker(
     tr.SimulatedSource(poses),
     'torso',
-    frame_rotation=tr.Y_UP_TO_Z_UP,
+    frames=tr.Frames(tr.Y_UP_TO_Z_UP),
     clock=clock,
   )
   calibration = tracker.calibrate_origin(samples=10)
@@ -162,7 +162,7 @@ def test_moving_forward_after_calibration_is_moving_along_y():
   velocity = tr.Y_UP_TO_Z_UP.T @ (0.2 * forward)  # Tracker frame.
   source = _moving_source(clock, (3.0, 0.3, 1.0), tracked, velocity=velocity)
   tracker = tr.TorsoTracker(
-    source, 'torso', frame_rotation=tr.Y_UP_TO_Z_UP, clock=clock
+    source, 'torso', frames=tr.Frames(tr.Y_UP_TO_Z_UP), clock=clock
   )
   tracker.calibrate_origin(samples=3)
   clock.now = 0.5
@@ -198,9 +198,7 @@ def test_finite_difference_velocities_with_mounting_and_calibration():
   tracker = tr.TorsoTracker(
     tr.SimulatedSource(poses),
     7,
-    frame_rotation=tr.Y_UP_TO_Z_UP,
-    body_rotation=geo.quat_to_matrix(mount),
-    body_offset=offset,
+    frames=tr.Frames(tr.Y_UP_TO_Z_UP, geo.quat_to_matrix(mount), offset),
     clock=clock,
   )
   calibration = tracker.calibrate_origin(samples=1)
@@ -260,6 +258,8 @@ def test_missing_or_stale_tracker_raises_clear_errors():
     tracker.target_position()
   with pytest.raises(ValueError, match='stale_timeout'):
     tr.TorsoTracker(tr.SimulatedSource(poses), 'kitty', stale_timeout=0)
+  with pytest.raises(ValueError, match='3x3 matrix or a quaternion'):
+    tr.Frames(body_rotation=np.eye(2))
   closed = []
   source = tr.SimulatedSource(poses, on_close=lambda: closed.append(1))
   with tr.TorsoTracker(source, 'kitty'):
@@ -293,13 +293,18 @@ def test_targets_follow_the_calibrated_world():
   with pytest.raises(tr.TrackingError, match="target body 'ball'"):
     tracker.target_position()
   tracker = tr.TorsoTracker(
-    source, 'torso', 'goal', frame_rotation=tr.Y_UP_TO_Z_UP, clock=clock
+    source, 'torso', 'goal', frames=tr.Frames(tr.Y_UP_TO_Z_UP), clock=clock
   )
   tracker.calibrate_origin(samples=2)
   assert np.allclose(tracker.target_position(), (0.0, 2.0))
   assert np.allclose(tracker.heading_position(), (0.0, 2.0))  # Default.
   tracker = tr.TorsoTracker(
-    source, 'torso', 'goal', 'flag', frame_rotation=tr.Y_UP_TO_Z_UP, clock=clock
+    source,
+    'torso',
+    'goal',
+    'flag',
+    frames=tr.Frames(tr.Y_UP_TO_Z_UP),
+    clock=clock,
   )
   tracker.calibrate_origin(samples=2)
   assert np.allclose(tracker.heading_position(), (2.0, 0.0))
@@ -413,9 +418,7 @@ def test_tracker_recovers_the_torso_through_a_y_up_frame_and_a_mount():
   tracker = tr.TorsoTracker(
     source,
     'torso',
-    frame_rotation=tr.Y_UP_TO_Z_UP,
-    body_rotation=mount,
-    body_offset=offset,
+    frames=tr.Frames(tr.Y_UP_TO_Z_UP, mount, offset),
     clock=now,
   )
   try:

@@ -173,7 +173,7 @@ def test_torso_tracker_on_natnet_reports_what_is_missing():
   with natnet.NatNetClient(
     multicast_group=None, data_port=0, local_interface='127.0.0.1'
   ) as client:
-    tracker = tr.TorsoTracker(client, body=5, frame_rotation=tr.Y_UP_TO_Z_UP)
+    tracker = tr.TorsoTracker(client, body=5, frames=tr.Frames(tr.Y_UP_TO_Z_UP))
     with pytest.raises(tr.TrackingError, match=r"torso body '5'.*0 frames"):
       tracker.torso_state()
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:

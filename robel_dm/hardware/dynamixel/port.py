@@ -166,76 +166,98 @@ def _open_locked(device_path: str, baud_rate: int):
 _BEHIND_BUS_LIMIT_S = 10.0
 
 
-def port_handler_class():
+class _LockedSetup:
+  """`PortHandler` setup: the port opened once and locked (see
+  `_open_locked`), and 4.5 Mbps (missing from the SDK's list).
+
+  A mixin for the SDK's PortHandler (its attributes and methods).
+  """
+
+  def getCFlagBaud(self, baudrate):  # noqa: N802 (SDK method name)
+    if baudrate == 4_500_000:
+      return baudrate
+    return super().getCFlagBaud(baudrate)
+
+  def setupPort(self, cflag_baud):  # noqa: N802 (SDK method name)
+    # The SDK's closes and reopens a port to change its speed, dropping
+    # the lock for a moment: the port is opened once, then reconfigured.
+    del cflag_baud  # The SDK's own setup, too, uses self.baudrate.
+    if isinstance(self.ser, _RefusedPort):
+      return True  # The client's lock_exclusively raises the refusal.
+    if self.is_open:
+      self.ser.baudrate = self.baudrate
+    else:
+      self.ser = _open_locked(self.port_name, self.baudrate)
+      if isinstance(self.ser, _RefusedPort):
+        return True
+      self.is_open = True
+    self.ser.reset_input_buffer()
+    self.tx_time_per_byte = (1000.0 / self.baudrate) * 10.0
+    return True
+
+
+class _PatientTimeouts:
+  """`PortHandler` timeouts: bytes counted both ways, and, for a bus that
+  reports its progress, replies that come late because the machine is busy
+  waited for (up to `_BEHIND_BUS_LIMIT_S`).
+
+  A mixin for the SDK's PortHandler (its attributes and methods).
+  """
+
+  # Bytes the bus has answered of this port's output, and bytes it has
+  # sent to it; None for a real bus, whose replies are due within the
+  # SDK's deadline.
+  progress: Callable[[], tuple[int, int]] | None = None
+  written = read = 0
+  _started = 0.0
+
+  def writePort(self, packet):  # noqa: N802 (SDK method name)
+    written = super().writePort(packet)
+    self.written += written
+    return written
+
+  def readPort(self, length):  # noqa: N802 (SDK method name)
+    data = super().readPort(length)
+    self.read += len(data)
+    return data
+
+  def setPacketTimeout(self, packet_length):  # noqa: N802
+    super().setPacketTimeout(packet_length)
+    self._started = self.packet_start_time
+
+  def setPacketTimeoutMillis(self, msec):  # noqa: N802
+    super().setPacketTimeoutMillis(msec)
+    self._started = self.packet_start_time
+
+  def isPacketTimeout(self):  # noqa: N802
+    if not super().isPacketTimeout():
+      return False
+    if self.progress is None:
+      return True
+    # Behind: a request not yet answered, or a reply not yet read (a pty
+    # passes written bytes on asynchronously).
+    answered, sent = self.progress()
+    behind = answered < self.written or sent > self.read
+    waited_s = (self.getCurrentTime() - self._started) / 1000.0
+    if behind and waited_s < _BEHIND_BUS_LIMIT_S:
+      self.packet_start_time = self.getCurrentTime()
+      self.packet_timeout = 1.0  # Look again in a millisecond.
+      return False
+    return True
+
+
+def port_handler_class() -> type:
   """The SDK's PortHandler, opening its port locked (see `_open_locked`),
   extended with 4.5 Mbps (missing from its list) and, for a bus that
   reports its progress, replies that come late because the machine is busy.
   Only the client calls it, once it has checked that the SDK is installed.
+
+  Returns:
+    The class: `_LockedSetup` and `_PatientTimeouts` over the SDK's.
   """
   import dynamixel_sdk as sdk  # noqa: PLC0415 (the optional hardware extra)
 
-  class PortHandler(sdk.PortHandler):
-    # Bytes the bus has answered of this port's output, and bytes it has
-    # sent to it; None for a real bus, whose replies are due within the
-    # SDK's deadline.
-    progress: Callable[[], tuple[int, int]] | None = None
-    written = read = 0
-    _started = 0.0
-
-    def getCFlagBaud(self, baudrate):  # noqa: N802 (SDK method name)
-      if baudrate == 4_500_000:
-        return baudrate
-      return super().getCFlagBaud(baudrate)
-
-    def setupPort(self, cflag_baud):  # noqa: N802 (SDK method name)
-      # The SDK's closes and reopens a port to change its speed, dropping
-      # the lock for a moment: the port is opened once, then reconfigured.
-      del cflag_baud  # The SDK's own setup, too, uses self.baudrate.
-      if isinstance(self.ser, _RefusedPort):
-        return True  # The client's lock_exclusively raises the refusal.
-      if self.is_open:
-        self.ser.baudrate = self.baudrate
-      else:
-        self.ser = _open_locked(self.port_name, self.baudrate)
-        if isinstance(self.ser, _RefusedPort):
-          return True
-        self.is_open = True
-      self.ser.reset_input_buffer()
-      self.tx_time_per_byte = (1000.0 / self.baudrate) * 10.0
-      return True
-
-    def writePort(self, packet):  # noqa: N802 (SDK method name)
-      written = super().writePort(packet)
-      self.written += written
-      return written
-
-    def readPort(self, length):  # noqa: N802 (SDK method name)
-      data = super().readPort(length)
-      self.read += len(data)
-      return data
-
-    def setPacketTimeout(self, packet_length):  # noqa: N802
-      super().setPacketTimeout(packet_length)
-      self._started = self.packet_start_time
-
-    def setPacketTimeoutMillis(self, msec):  # noqa: N802
-      super().setPacketTimeoutMillis(msec)
-      self._started = self.packet_start_time
-
-    def isPacketTimeout(self):  # noqa: N802
-      if not super().isPacketTimeout():
-        return False
-      if self.progress is None:
-        return True
-      # Behind: a request not yet answered, or a reply not yet read (a pty
-      # passes written bytes on asynchronously).
-      answered, sent = self.progress()
-      behind = answered < self.written or sent > self.read
-      waited_s = (self.getCurrentTime() - self._started) / 1000.0
-      if behind and waited_s < _BEHIND_BUS_LIMIT_S:
-        self.packet_start_time = self.getCurrentTime()
-        self.packet_timeout = 1.0  # Look again in a millisecond.
-        return False
-      return True
+  class PortHandler(_LockedSetup, _PatientTimeouts, sdk.PortHandler):
+    """The SDK's PortHandler, locked and patient (see `port_handler_class`)."""
 
   return PortHandler

@@ -387,7 +387,8 @@ class NatNetClient:
   """Receives Motive's rigid bodies; a `tracking.TrackerSource`.
 
   Use as a context manager, or call `close`. Poses are in Motive's frame
-  (Y-up by default: give `TorsoTracker` `frame_rotation=Y_UP_TO_Z_UP`);
+  (Y-up by default: give `TorsoTracker`
+  `frames=Frames(frame_rotation=Y_UP_TO_Z_UP)`);
   their timestamp is the monotonic receive time. Bodies Motive reports as
   not tracked are dropped (the last valid pose then ages and a
   `TorsoTracker` reports it stale).

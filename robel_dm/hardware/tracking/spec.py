@@ -114,6 +114,16 @@ def parse(spec: str) -> dict:
       f'--tracker {spec!r}: expected natnet:SERVER[:PORT],rigid_body=ID,...'
     )
   address, *pairs = spec[len(_SCHEME) :].split(',')
+  fields = _parse_address(spec, address)
+  options = _parse_options(pairs)
+  fields.update(_parse_bodies(options))
+  fields.update(_parse_network(options))
+  fields.update(_parse_stream(options))
+  return fields
+
+
+def _parse_address(spec: str, address: str) -> dict:
+  """`server` and `command_port` from SERVER[:COMMAND_PORT]."""
   server, colon, port = address.partition(':')
   if not server:
     raise TrackerSpecError(f'--tracker {spec!r}: no server address')
@@ -125,6 +135,11 @@ def parse(spec: str) -> dict:
         f'--tracker: bad port {port!r}: the command port is 1..{_MAX_PORT}'
       )
     fields['command_port'] = int(port)
+  return fields
+
+
+def _parse_options(pairs: list[str]) -> dict[str, str]:
+  """The option=value pairs as a dict: known options, each given once."""
   options = {}
   for pair in pairs:
     key, sep, value = pair.partition('=')
@@ -138,14 +153,26 @@ def parse(spec: str) -> dict:
     if key in options:
       raise TrackerSpecError(f'--tracker: {key} is given twice')
     options[key] = value.strip()
+  return options
+
+
+def _parse_bodies(options: dict[str, str]) -> dict:
+  """The rigid-body IDs (`rigid_body` required, `target`, `heading`)."""
   if 'rigid_body' not in options:
     raise TrackerSpecError('--tracker: rigid_body=ID (the torso) is required')
+  bodies = {}
   for key in _BODIES:
     if key in options:
-      fields[key] = _integer(
+      bodies[key] = _integer(
         key, options[key], 1, _MAX_BODY_ID,
         f'a rigid-body ID (1..{_MAX_BODY_ID})',
       )  # fmt: skip
+  return bodies
+
+
+def _parse_network(options: dict[str, str]) -> dict:
+  """Where frames arrive: `multicast`, `data_port` (always) and `local`."""
+  fields = {}
   if 'multicast' in options:
     _check_multicast(options['multicast'])
     fields['multicast'] = options['multicast']
@@ -164,6 +191,12 @@ def parse(spec: str) -> dict:
         'an address of this machine'
       )
     fields['local'] = options['local']
+  return fields
+
+
+def _parse_stream(options: dict[str, str]) -> dict:
+  """What the frames hold: `version` (if given) and `y_up` (always)."""
+  fields = {}
   if 'version' in options:
     fields['version'] = _version(options['version'])
   y_up = options.get('y_up', 'true')
@@ -217,5 +250,5 @@ def make_tracker(spec: str) -> tracking.TorsoTracker:
     fields['rigid_body'],
     target_body=fields.get('target'),
     heading_body=fields.get('heading'),
-    frame_rotation=tracking.Y_UP_TO_Z_UP if fields['y_up'] else None,
+    frames=tracking.Frames(tracking.Y_UP_TO_Z_UP) if fields['y_up'] else None,
   )

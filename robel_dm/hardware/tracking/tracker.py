@@ -13,7 +13,7 @@ module holds the tracker-independent part:
     `hardware.environment.make_environment(torso_source=...)` expects.
 
 Frames. A raw pose is the tracked body's pose in the tracker's world frame.
-`TorsoTracker` applies, in order:
+`TorsoTracker` applies, in order (1 and 2 are its `Frames`):
   1. `frame_rotation` R_f, a fixed rotation from the tracker's world frame
      to a z-up frame (`Y_UP_TO_Z_UP` for a y-up tracker such as Motive's
      default or OpenVR). ROBEL 0.1.2 declared this matrix for OpenVR but
@@ -154,6 +154,55 @@ class SimulatedSource:
 # --- The torso tracker -------------------------------------------------------
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class Frames:
+  """Where the torso frame is, relative to the tracker's frames.
+
+  Steps 1 and 2 of the module docstring: the tracker's world frame, and
+  the tracker's mounting on the torso. Rotations are 3x3 matrices or
+  (w, x, y, z) quaternions; each is checked and copied when given.
+
+  Attributes:
+    frame_rotation: rotation from the tracker's world frame to a z-up
+      frame; None if the tracker is z-up already. `Y_UP_TO_Z_UP` for a
+      y-up tracker.
+    body_rotation: the torso frame's orientation in the tracked body's
+      frame; identity if None.
+    body_offset: the torso origin in the tracked body's frame, m; zero if
+      None.
+  """
+
+  frame_rotation: np.ndarray | None = None
+  body_rotation: np.ndarray | None = None
+  body_offset: np.ndarray | None = None
+
+  def __post_init__(self):
+    for name in ('frame_rotation', 'body_rotation'):
+      rotation = getattr(self, name)
+      if rotation is not None:
+        _as_quaternion(rotation)  # Raises for a wrong shape.
+        object.__setattr__(self, name, np.array(rotation, dtype=float))
+    if self.body_offset is not None:
+      offset = np.array(self.body_offset, dtype=float)
+      object.__setattr__(self, 'body_offset', offset)
+
+  def frame_quaternion(self) -> np.ndarray:
+    """`frame_rotation` as a quaternion (identity if None)."""
+    return _quaternion_or_identity(self.frame_rotation)
+
+  def body_quaternion(self) -> np.ndarray:
+    """`body_rotation` as a quaternion (identity if None)."""
+    return _quaternion_or_identity(self.body_rotation)
+
+  def offset(self) -> np.ndarray:
+    """`body_offset`, m (zero if None)."""
+    return np.zeros(3) if self.body_offset is None else self.body_offset.copy()
+
+
+def _quaternion_or_identity(rotation: np.ndarray | None) -> np.ndarray:
+  return _IDENTITY.copy() if rotation is None else _as_quaternion(rotation)
+
+
 @dataclasses.dataclass(frozen=True)
 class Calibration:
   """What `calibrate_origin` measured.
@@ -198,9 +247,7 @@ class TorsoTracker:
     target_body: str | int | None = None,
     heading_body: str | int | None = None,
     *,
-    frame_rotation=None,
-    body_rotation=None,
-    body_offset=None,
+    frames: Frames | None = None,
     stale_timeout: float = DEFAULT_STALE_TIMEOUT,
     velocity_time_constant: float = 0.0,
     clock: Callable[[], float] = time.monotonic,
@@ -213,13 +260,9 @@ class TorsoTracker:
       target_body: the Orient/Walk target's body, if tracked.
       heading_body: the Walk heading marker's body; the target by default
         (as in ROBEL).
-      frame_rotation: rotation (3x3 or quaternion) from the tracker's world
-        frame to a z-up frame; None if the tracker is z-up already. Use
-        `Y_UP_TO_Z_UP` for a y-up tracker.
-      body_rotation: the torso frame's orientation in the tracked body's
-        frame (3x3 or quaternion); identity if None.
-      body_offset: the torso origin in the tracked body's frame, m; zero if
-        None.
+      frames: the tracker's world frame and its mounting on the torso;
+        None for a z-up tracker whose body frame is the torso's. For a
+        y-up tracker: `Frames(frame_rotation=Y_UP_TO_Z_UP)`.
       stale_timeout: `torso_state` fails when the newest torso pose is
         older than this, s.
       velocity_time_constant: low-pass time constant of the velocity
@@ -238,15 +281,11 @@ class TorsoTracker:
     if heading_body is None:
       heading_body = self.target_body
     self.heading_body = None if heading_body is None else str(heading_body)
-    self._frame_q = (
-      _IDENTITY if frame_rotation is None else _as_quaternion(frame_rotation)
-    )
-    self._body_q = (
-      _IDENTITY if body_rotation is None else _as_quaternion(body_rotation)
-    )
-    self._body_offset = (
-      np.zeros(3) if body_offset is None else np.array(body_offset, float)
-    )
+    frames = Frames() if frames is None else frames
+    self.frames = frames
+    self._frame_q = frames.frame_quaternion()
+    self._body_q = frames.body_quaternion()
+    self._body_offset = frames.offset()
     self._stale_timeout = float(stale_timeout)
     self._tau = float(velocity_time_constant)
     self._clock = clock
