@@ -186,51 +186,19 @@ def test_dynamics_stay_in_robels_ranges_and_do_not_compound(
     current = _snapshot(model)
     assert _within(current['dof_damping'], _DAMPING)
     assert _within(current['dof_frictionloss'], _FRICTION_LOSS)
-    kp = current['actuator_gainprm'][:, 0]
-    assert np.all(kp == kp[0]) and _within(kp[0], _KP)
-    np.testing.assert_array_equal(current['actuator_biasprm'][:, 1], -kp)
-    # Nothing else of the actuators changes.
-    np.testing.assert_array_equal(
-      current['actuator_gainprm'][:, 1:], nominal['actuator_gainprm'][:, 1:]
-    )
-    np.testing.assert_array_equal(
-      current['actuator_biasprm'][:, [0, 2]],
-      nominal['actuator_biasprm'][:, [0, 2]],
-    )
+    kp = _shared_kp(current, nominal)
+    assert _within(kp[0], _KP)
     np.testing.assert_array_equal(current['body_mass'], nominal['body_mass'])
     np.testing.assert_array_equal(
       current['body_inertia'], nominal['body_inertia']
     )
     friction = current['geom_friction']
-    offset = current['body_pos'] - nominal['body_pos']
     rgba = current['geom_rgba']
     if pose:
-      np.testing.assert_array_equal(friction, nominal['geom_friction'])
-      np.testing.assert_array_equal(offset, 0.0)
-      np.testing.assert_array_equal(rgba, nominal['geom_rgba'])
+      for name in ('geom_friction', 'body_pos', 'geom_rgba'):
+        np.testing.assert_array_equal(current[name], nominal[name])
     else:
-      # One draw for all geoms, relative to each geom's nominal friction.
-      factor = friction / nominal['geom_friction']
-      np.testing.assert_allclose(factor, factor[:1].repeat(len(factor), 0))
-      metal_friction = friction[metal]
-      assert _within(metal_friction[:, 0], _SLIDE)
-      assert _within(metal_friction[:, 1], _SPIN)
-      assert _within(metal_friction[:, 2], _ROLL)
-      np.testing.assert_allclose(
-        friction[plastic, 0], _PLASTIC_RATIO * metal_friction[0, 0]
-      )
-      # Only the mount moves, within +-1 cm of nominal.
-      assert np.all(np.abs(offset[mount]) <= _MOUNT_OFFSET)
-      assert np.all(offset[mount] != 0)
-      others = np.arange(model.nbody) != mount
-      np.testing.assert_array_equal(offset[others], 0.0)
-      assert _within(rgba[colored, :3], _COLOR)
-      np.testing.assert_array_equal(
-        rgba[colored, 3], nominal['geom_rgba'][colored, 3]
-      )
-      np.testing.assert_array_equal(
-        rgba[~colored], nominal['geom_rgba'][~colored]
-      )
+      _assert_valve_station_draw(current, nominal, mount, colored)
     if previous is not None:  # Fresh draws at every reset.
       assert np.all(current['dof_damping'] != previous['dof_damping'])
       assert np.all(current['dof_frictionloss'] != previous['dof_frictionloss'])
@@ -240,6 +208,52 @@ def test_dynamics_stay_in_robels_ranges_and_do_not_compound(
         assert np.all(current['body_pos'][mount] != previous['body_pos'][mount])
         assert np.all(rgba[colored, :3] != previous['geom_rgba'][colored, :3])
     previous = current
+
+
+def _shared_kp(current, nominal) -> np.ndarray:
+  """The actuators' position gains, one draw for all; nothing else of the
+  actuators changes."""
+  kp = current['actuator_gainprm'][:, 0]
+  assert np.all(kp == kp[0])
+  np.testing.assert_array_equal(current['actuator_biasprm'][:, 1], -kp)
+  np.testing.assert_array_equal(
+    current['actuator_gainprm'][:, 1:], nominal['actuator_gainprm'][:, 1:]
+  )
+  np.testing.assert_array_equal(
+    current['actuator_biasprm'][:, [0, 2]],
+    nominal['actuator_biasprm'][:, [0, 2]],
+  )
+  return kp
+
+
+def _assert_valve_station_draw(current, nominal, mount, colored) -> None:
+  """The valve station's draw: one friction factor for every geom, the
+  mount moved, the valve and mount recoloured; nothing else."""
+  friction = current['geom_friction']
+  metal = np.all(nominal['geom_friction'] == _METAL_FRICTION, axis=1)
+  plastic = nominal['geom_friction'][:, 0] == _PLASTIC_RATIO
+  # One draw for all geoms, relative to each geom's nominal friction.
+  factor = friction / nominal['geom_friction']
+  np.testing.assert_allclose(factor, factor[:1].repeat(len(factor), 0))
+  metal_friction = friction[metal]
+  assert _within(metal_friction[:, 0], _SLIDE)
+  assert _within(metal_friction[:, 1], _SPIN)
+  assert _within(metal_friction[:, 2], _ROLL)
+  np.testing.assert_allclose(
+    friction[plastic, 0], _PLASTIC_RATIO * metal_friction[0, 0]
+  )
+  # Only the mount moves, within +-1 cm of nominal.
+  offset = current['body_pos'] - nominal['body_pos']
+  assert np.all(np.abs(offset[mount]) <= _MOUNT_OFFSET)
+  assert np.all(offset[mount] != 0)
+  others = np.arange(len(offset)) != mount
+  np.testing.assert_array_equal(offset[others], 0.0)
+  rgba = current['geom_rgba']
+  assert _within(rgba[colored, :3], _COLOR)
+  np.testing.assert_array_equal(
+    rgba[colored, 3], nominal['geom_rgba'][colored, 3]
+  )
+  np.testing.assert_array_equal(rgba[~colored], nominal['geom_rgba'][~colored])
 
 
 def test_nominal_variants_leave_the_model_alone(nominal_task_id):
@@ -439,7 +453,7 @@ def test_dkitty_dynamics_stay_in_robels_ranges_and_do_not_compound(
   assert env.task.dynamics == (
     randomization.DKITTY_STAND if stand else randomization.DKITTY_LOCOMOTION
   )
-  model, data = env.physics.model, env.physics.data
+  model = env.physics.model
   # The model is compiled once, at construction: before the first reset it
   # is nominal, and agrees with the Fixed variant's (which has no terrain).
   nominal = _snapshot(model)
@@ -450,7 +464,6 @@ def test_dkitty_dynamics_stay_in_robels_ranges_and_do_not_compound(
       nominal[name], getattr(fixed_env.physics.model, name), name
     )
   assert model.ngeom == fixed_env.physics.model.ngeom + 1  # The terrain.
-  nominal_total = nominal['body_mass'].sum()
   legs = env.physics.bind(env.task.robot.joints).dofadr
   others = np.setdiff1d(np.arange(model.nv), legs)
   assert len(legs) == 12 and len(others) == 6  # The free joint.
@@ -465,28 +478,12 @@ def test_dkitty_dynamics_stay_in_robels_ranges_and_do_not_compound(
   for _ in range(_RESETS):
     env.reset()
     current = _snapshot(model)
-    damping = current['dof_damping']
-    assert np.all(damping[legs] == damping[legs[0]])  # One shared draw.
-    assert _within(damping[legs[0]], _KITTY_DAMPING)
-    np.testing.assert_array_equal(
-      damping[others], nominal['dof_damping'][others]
-    )
-    friction_loss = current['dof_frictionloss']
-    assert np.all(friction_loss[legs] == friction_loss[legs[0]])
-    assert _within(friction_loss[legs[0]], _FRICTION_LOSS)
-    np.testing.assert_array_equal(
-      friction_loss[others], nominal['dof_frictionloss'][others]
-    )
-    kp = current['actuator_gainprm'][:, 0]
-    assert len(kp) == 12 and np.all(kp == kp[0]) and _within(kp[0], kp_bounds)
-    np.testing.assert_array_equal(current['actuator_biasprm'][:, 1], -kp)
-    np.testing.assert_array_equal(
-      current['actuator_gainprm'][:, 1:], nominal['actuator_gainprm'][:, 1:]
-    )
-    np.testing.assert_array_equal(
-      current['actuator_biasprm'][:, [0, 2]],
-      nominal['actuator_biasprm'][:, [0, 2]],
-    )
+    damping = _shared_leg_draw(current, nominal, 'dof_damping', legs)
+    assert _within(damping, _KITTY_DAMPING)
+    friction_loss = _shared_leg_draw(current, nominal, 'dof_frictionloss', legs)
+    assert _within(friction_loss, _FRICTION_LOSS)
+    kp = _shared_kp(current, nominal)
+    assert len(kp) == 12 and _within(kp[0], kp_bounds)
     # One geom friction for all geoms, relative to the nominal friction.
     friction = current['geom_friction']
     np.testing.assert_array_equal(
@@ -495,44 +492,58 @@ def test_dkitty_dynamics_stay_in_robels_ranges_and_do_not_compound(
     assert _within(friction[:, 0], _SLIDE)
     assert _within(friction[:, 1], _SPIN)
     assert _within(friction[:, 2], _ROLL)
-    # Total mass in ROBEL's range; every body scaled from nominal.
-    total = current['body_mass'].sum()
-    assert _within(total, _KITTY_MASS)
-    scale = total / nominal_total
-    np.testing.assert_allclose(
-      current['body_mass'], scale * nominal['body_mass']
-    )
-    np.testing.assert_allclose(
-      current['body_inertia'], scale * nominal['body_inertia']
-    )
-    # Derived constants are consistent with the new masses.
-    assert model.body_subtreemass[0] == pytest.approx(total, rel=1e-12)
-    derived = (
-      model.body_subtreemass.copy(),
-      model.dof_invweight0.copy(),
-      model.body_invweight0.copy(),
-    )
-    mujoco.mj_setConst(model.ptr, data.ptr)
-    np.testing.assert_allclose(model.body_subtreemass, derived[0], rtol=1e-12)
-    np.testing.assert_allclose(model.dof_invweight0, derived[1], rtol=1e-12)
-    np.testing.assert_allclose(model.body_invweight0, derived[2], rtol=1e-12)
+    total = _scaled_mass(current, nominal, env.physics)
     # Nothing else moves or changes colour.
     np.testing.assert_array_equal(current['body_pos'], nominal['body_pos'])
     np.testing.assert_array_equal(current['geom_rgba'], nominal['geom_rgba'])
     if previous is not None:  # Fresh draws at every reset.
-      assert damping[legs[0]] != previous['dof_damping'][legs[0]]
-      assert friction_loss[legs[0]] != previous['dof_frictionloss'][legs[0]]
+      assert damping != previous['dof_damping'][legs[0]]
+      assert friction_loss != previous['dof_frictionloss'][legs[0]]
       assert kp[0] != previous['actuator_gainprm'][0, 0]
       assert np.all(friction[0] != previous['geom_friction'][0])
       assert total != previous['body_mass'].sum()
     previous = current
     draws['kp'].append(kp[0])
     draws['mass'].append(total)
-    draws['damping'].append(damping[legs[0]])
+    draws['damping'].append(damping)
   # The draws spread over the ranges (Stand's kp range is the wider one).
   assert _spread(draws['kp'], kp_bounds) > 0.6
   assert _spread(draws['mass'], _KITTY_MASS) > 0.6
   assert _spread(draws['damping'], _KITTY_DAMPING) > 0.6
+
+
+def _shared_leg_draw(current, nominal, name, legs) -> float:
+  """The value of `name` the leg DOFs share (one draw); the free joint's
+  DOFs keep theirs."""
+  values = current[name]
+  assert np.all(values[legs] == values[legs[0]])
+  others = np.setdiff1d(np.arange(len(values)), legs)
+  np.testing.assert_array_equal(values[others], nominal[name][others])
+  return values[legs[0]]
+
+
+def _scaled_mass(current, nominal, physics) -> float:
+  """The total mass, in ROBEL's range, with every body's mass and inertia
+  scaled from nominal and the derived constants consistent with them."""
+  model, data = physics.model, physics.data
+  total = current['body_mass'].sum()
+  assert _within(total, _KITTY_MASS)
+  scale = total / nominal['body_mass'].sum()
+  np.testing.assert_allclose(current['body_mass'], scale * nominal['body_mass'])
+  np.testing.assert_allclose(
+    current['body_inertia'], scale * nominal['body_inertia']
+  )
+  assert model.body_subtreemass[0] == pytest.approx(total, rel=1e-12)
+  derived = (
+    model.body_subtreemass.copy(),
+    model.dof_invweight0.copy(),
+    model.body_invweight0.copy(),
+  )
+  mujoco.mj_setConst(model.ptr, data.ptr)
+  np.testing.assert_allclose(model.body_subtreemass, derived[0], rtol=1e-12)
+  np.testing.assert_allclose(model.dof_invweight0, derived[1], rtol=1e-12)
+  np.testing.assert_allclose(model.body_invweight0, derived[2], rtol=1e-12)
+  return total
 
 
 def test_dkitty_observation_noise_is_on_the_legs_only(dkitty_dynamics_task_id):
