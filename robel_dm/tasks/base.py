@@ -81,6 +81,59 @@ def mocap_index(physics, body: mjcf.Element) -> int:
   return int(physics.model.body_mocapid[body_id])
 
 
+@dataclasses.dataclass(frozen=True, kw_only=True, eq=False)
+class Scene:
+  """What a task builds: its model, its robot and the episode's timing.
+
+  Attributes:
+    arena: the root entity; `robot` must already be attached to it.
+    robot: the actuated robot; its actuators define the action.
+    control_timestep: seconds between actions.
+    episode_steps: control steps per episode.
+    extra_sensed_joints: non-robot joints read with the robot (e.g. the
+      valve), appended after the robot joints.
+    extra_position_widths: range widths of those joints for noise, rad.
+    extra_velocity_widths: velocity-range widths of those joints, rad/s.
+    randomizer_targets: elements dynamics randomization acts on.
+    root_joint: the free joint of a free-floating robot, or None.
+  """
+
+  arena: composer.Arena
+  robot: servo_robot.ServoRobot
+  control_timestep: float
+  episode_steps: int
+  extra_sensed_joints: tuple[mjcf.Element, ...] = ()
+  extra_position_widths: tuple[float, ...] = ()
+  extra_velocity_widths: tuple[float, ...] = ()
+  randomizer_targets: randomization.Targets | None = None
+  root_joint: mjcf.Element | None = None
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class TaskOptions:
+  """What a user chooses of any task: the keywords every task factory
+  accepts (e.g. `suite.load(..., task_kwargs={'observation_noise': 0.1})`).
+
+  `RobelTask` validates them, as some checks need the task (its features
+  and reward constants).
+
+  Attributes:
+    dynamics: ranges of per-episode dynamics randomization, or None.
+    observation_noise: ROBEL's `sim_observation_noise` fraction; 0 = off.
+    observation_keys: the agent's observation, in order; None for ROBEL's
+      default keys of the task.
+    action_bounds: 'raise' (default) rejects actions outside [-1, 1];
+      'clip' clips them as ROBEL did.
+    reward: the reward constants (see `reward_constants`); ROBEL's if None.
+  """
+
+  dynamics: randomization.DynamicsRanges | None = None
+  observation_noise: float = 0.0
+  observation_keys: tuple[str, ...] | None = None
+  action_bounds: str = 'raise'
+  reward: Any = None
+
+
 class RobelTask(composer.Task):
   """Base class of robel_dm tasks (one level below `composer.Task`).
 
@@ -98,80 +151,53 @@ class RobelTask(composer.Task):
   # ROBEL's reward, score and success constants (a frozen dataclass).
   DEFAULT_REWARD: Any = None
 
-  def __init__(
-    self,
-    *,
-    arena: composer.Arena,
-    robot: servo_robot.ServoRobot,
-    control_timestep: float,
-    episode_steps: int,
-    extra_sensed_joints: tuple[mjcf.Element, ...] = (),
-    extra_position_widths: tuple[float, ...] = (),
-    extra_velocity_widths: tuple[float, ...] = (),
-    dynamics: randomization.DynamicsRanges | None = None,
-    randomizer_targets: randomization.Targets | None = None,
-    observation_noise: float = 0.0,
-    observation_keys: tuple[str, ...] | None = None,
-    action_bounds: str = 'raise',
-    root_joint: mjcf.Element | None = None,
-    reward: Any = None,
-  ):
+  def __init__(self, scene: Scene, options: TaskOptions):
     """Initializes the task.
 
     Args:
-      arena: the root entity; `robot` must already be attached to it.
-      robot: the actuated robot; its actuators define the action.
-      control_timestep: seconds between actions.
-      episode_steps: control steps per episode.
-      extra_sensed_joints: non-robot joints read with the robot (e.g. the
-        valve), appended after the robot joints.
-      extra_position_widths: range widths of those joints for noise, rad.
-      extra_velocity_widths: velocity-range widths of those joints, rad/s.
-      dynamics: ranges of per-episode dynamics randomization, or None.
-      randomizer_targets: elements `dynamics` acts on.
-      observation_noise: ROBEL's `sim_observation_noise` fraction; 0 = off.
-      observation_keys: the agent's observation, in order; defaults to
-        ROBEL's default keys for this task.
-      action_bounds: 'raise' (default) rejects actions outside [-1, 1];
-        'clip' clips them as ROBEL did.
-      root_joint: the free joint of a free-floating robot, or None.
-      reward: the reward constants (see `reward_constants`); ROBEL's if
-        None. The task reads them from `self.reward_constants`.
+      scene: what the subclass built (model, robot, timing).
+      options: the user's options; the task reads the reward constants
+        from `self.reward_constants`.
 
     Raises:
-      ValueError: for unknown observation keys, a bad `action_bounds`, a
-        negative noise fraction, non-positive episode length or bad reward
-        constants.
+      ValueError: for bad reward constants, a bad `action_bounds`, a
+        negative noise fraction, non-positive episode length or unknown
+        observation keys (checked in that order).
     """
-    self.reward_constants = reward_constants(self.DEFAULT_REWARD, reward)
+    self.reward_constants = reward_constants(
+      self.DEFAULT_REWARD, options.reward
+    )
+    action_bounds = options.action_bounds
     if action_bounds not in ACTION_BOUND_MODES:
       raise ValueError(
         f'action_bounds must be one of {ACTION_BOUND_MODES}, got '
         f'{action_bounds!r}'
       )
+    observation_noise = options.observation_noise
     if observation_noise < 0 or not math.isfinite(observation_noise):
       raise ValueError(f'observation_noise must be >= 0: {observation_noise}')
-    if episode_steps <= 0:
-      raise ValueError(f'episode_steps must be positive: {episode_steps}')
-    keys = self._checked_keys(observation_keys)
-    self._arena = arena
+    if scene.episode_steps <= 0:
+      raise ValueError(f'episode_steps must be positive: {scene.episode_steps}')
+    keys = self._checked_keys(options.observation_keys)
+    robot = scene.robot
+    self._arena = scene.arena
     self._robot = robot
-    self._root_joint = root_joint
-    self._episode_steps = episode_steps
+    self._root_joint = scene.root_joint
+    self._episode_steps = scene.episode_steps
     self._clip_actions = action_bounds == 'clip'
     self._observation_noise = observation_noise
     self._agent_keys = keys
     self.set_timesteps(
-      control_timestep=control_timestep,
+      control_timestep=scene.control_timestep,
       physics_timestep=constants.PHYSICS_TIMESTEP,
     )
-    self._sensed_joints = tuple(robot.joints) + tuple(extra_sensed_joints)
-    self._extra_position_widths = np.asarray(extra_position_widths, float)
-    self._extra_velocity_widths = np.asarray(extra_velocity_widths, float)
+    self._sensed_joints = tuple(robot.joints) + tuple(scene.extra_sensed_joints)
+    self._extra_position_widths = np.asarray(scene.extra_position_widths, float)
+    self._extra_velocity_widths = np.asarray(scene.extra_velocity_widths, float)
     self._randomizer = None
-    if dynamics is not None:
+    if options.dynamics is not None:
       self._randomizer = randomization.DynamicsRandomizer(
-        dynamics, randomizer_targets or randomization.Targets()
+        options.dynamics, scene.randomizer_targets or randomization.Targets()
       )
 
     self._allocate_state(robot, observation_noise)

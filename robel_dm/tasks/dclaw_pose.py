@@ -93,8 +93,8 @@ class PoseTask(base.RobelTask):
         joint's goal oscillates between them at its own frequency, as in
         ROBEL's PoseRandom, its amplitude cut so that it moves no faster
         than `_MAX_GOAL_SPEED`.
-      **options: `RobelTask` options (`dynamics`, `observation_noise`,
-        `observation_keys`, `action_bounds`).
+      **options: `base.TaskOptions` fields (`dynamics`,
+        `observation_noise`, `observation_keys`, `action_bounds`, `reward`).
     """
     arena = station.ClawStation(
       mount_height=station.MOUNT_HEIGHT_POSE, show_goal=False
@@ -117,7 +117,7 @@ class PoseTask(base.RobelTask):
     self._speed_squared = np.zeros(9)
     self._fast = np.zeros(9, dtype=bool)
     self._joint_weights = np.full(9, 1 / 9)  # Means as dot products (faster).
-    super().__init__(
+    scene = base.Scene(
       arena=arena,
       robot=claw,
       control_timestep=constants.CONTROL_TIMESTEP_FAST,
@@ -125,8 +125,8 @@ class PoseTask(base.RobelTask):
       randomizer_targets=randomization.Targets(
         joints=claw.joints, actuators=claw.actuators
       ),
-      **options,
     )
+    super().__init__(scene, base.TaskOptions(**options))
     self._qpos_feature = self._features['qpos']
     self._qvel_feature = self._features['qvel']
     self._qpos_error_feature = self._features['qpos_error']

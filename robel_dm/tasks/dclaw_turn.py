@@ -108,8 +108,9 @@ class TurnTask(base.RobelTask):
       success_on: 'final' judges the error at the current (finally the last)
         step, 'mean' the mean |error| of the episode so far.
       dynamics: per-episode dynamics ranges, or None.
-      **options: `RobelTask` options (`observation_noise`,
-        `observation_keys`, `action_bounds`).
+      **options: the other `base.TaskOptions` fields
+        (`observation_noise`, `observation_keys`, `action_bounds`,
+        `reward`).
 
     Raises:
       ValueError: for an unknown valve or `success_on`.
@@ -131,7 +132,7 @@ class TurnTask(base.RobelTask):
     self._velocity = 0.0
     self._distance = 0.0
     self._goal = 0.0
-    super().__init__(
+    scene = base.Scene(
       arena=arena,
       robot=claw,
       control_timestep=constants.CONTROL_TIMESTEP,
@@ -139,15 +140,14 @@ class TurnTask(base.RobelTask):
       extra_sensed_joints=(self._valve.hinge,),
       extra_position_widths=(_VALVE_ANGLE_WIDTH,),
       extra_velocity_widths=(0.0,),
-      dynamics=dynamics,
       randomizer_targets=randomization.Targets(
         joints=claw.joints + (self._valve.hinge,),
         actuators=claw.actuators,
         mount=arena.mount,
         colored_geoms=(arena.mount_geom,) + self._valve.valve_geoms,
       ),
-      **options,
     )
+    super().__init__(scene, base.TaskOptions(dynamics=dynamics, **options))
     self._claw_qpos_feature = self._features['claw_qpos']
     self._claw_qvel_feature = self._features['claw_qvel']
     self._object_features = self.feature_span('object_x', 'object_qvel')

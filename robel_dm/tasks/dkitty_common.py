@@ -71,7 +71,7 @@ class Upright:
     return upright < self.threshold
 
 
-class Scene:
+class KittyScene:
   """The D'Kitty on its free joint in a `KittyFloor` arena."""
 
   def __init__(self, terrain: bool):
@@ -87,7 +87,7 @@ class Scene:
 class Torso:
   """Reads the torso's pose and velocity from the free joint and `xmat`."""
 
-  def __init__(self, scene: Scene):
+  def __init__(self, scene: KittyScene):
     self._root_joint = scene.root_joint
     self._torso = scene.robot.torso
     self.position = np.zeros(3)  # World position, m.
@@ -194,7 +194,7 @@ class KittyParts:
   """
 
   def __init__(self, terrain: bool, upright: Upright):
-    self.scene = Scene(terrain=terrain)
+    self.scene = KittyScene(terrain=terrain)
     self.torso = Torso(self.scene)
     self.upright = upright
     self._targets = []
@@ -213,26 +213,23 @@ class KittyParts:
   def robot(self) -> dkitty.DKitty:
     return self.scene.robot
 
-  def robel_task_arguments(self, episode_steps: int, **options) -> dict:
-    """Arguments of `RobelTask.__init__` for a D'Kitty task.
+  def task_scene(self, episode_steps: int) -> base.Scene:
+    """The `RobelTask` scene of a D'Kitty task.
 
     Args:
       episode_steps: the task's episode length, control steps.
-      **options: the task's `RobelTask` options (`dynamics`,
-        `observation_noise`, `observation_keys`, `action_bounds`).
     """
     robot = self.robot
-    return {
-      'arena': self.arena,
-      'robot': robot,
-      'control_timestep': constants.CONTROL_TIMESTEP,
-      'episode_steps': episode_steps,
-      'randomizer_targets': randomization.Targets(
+    return base.Scene(
+      arena=self.arena,
+      robot=robot,
+      control_timestep=constants.CONTROL_TIMESTEP,
+      episode_steps=episode_steps,
+      randomizer_targets=randomization.Targets(
         joints=robot.joints, actuators=robot.actuators
       ),
-      'root_joint': self.scene.root_joint,
-      **options,
-    }
+      root_joint=self.scene.root_joint,
+    )
 
   def bind_features(self, task) -> None:
     """Takes the task's torso and leg feature views, which `update` fills."""

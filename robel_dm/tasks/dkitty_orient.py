@@ -94,8 +94,8 @@ class OrientTask(base.RobelTask):
       target_yaw: heading of the target from the origin (rad, or a
         Variation), in the same convention.
       terrain: turn on ROBEL's random heightfield instead of a plane.
-      **options: `RobelTask` options (`dynamics`, `observation_noise`,
-        `observation_keys`, `action_bounds`).
+      **options: `base.TaskOptions` fields (`dynamics`,
+        `observation_noise`, `observation_keys`, `action_bounds`, `reward`).
     """
     self._kitty = dkitty_common.KittyParts(terrain=terrain, upright=_UPRIGHT)
     self._target = self._kitty.add_target(_TARGET_MARKER)
@@ -103,7 +103,7 @@ class OrientTask(base.RobelTask):
     self._target_yaw = target_yaw
     self._angle_error = 0.0
     super().__init__(
-      **self._kitty.robel_task_arguments(_EPISODE_STEPS, **options)
+      self._kitty.task_scene(_EPISODE_STEPS), base.TaskOptions(**options)
     )
     self._kitty.bind_features(self)
     self._facing_features = self.feature_span('current_facing', 'angle_error')

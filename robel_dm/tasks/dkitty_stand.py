@@ -84,8 +84,8 @@ class StandTask(base.RobelTask):
       terrain: stand on ROBEL's random heightfield instead of a plane.
       settle_substeps: physics steps a reset runs, commanding the initial
         pose, before the episode starts (ROBEL: 140, i.e. 0.35 s).
-      **options: `RobelTask` options (`dynamics`, `observation_noise`,
-        `observation_keys`, `action_bounds`).
+      **options: `base.TaskOptions` fields (`dynamics`,
+        `observation_noise`, `observation_keys`, `action_bounds`, `reward`).
     """
     self._kitty = dkitty_common.KittyParts(terrain=terrain, upright=_UPRIGHT)
     if settle_substeps < 0:
@@ -97,7 +97,7 @@ class StandTask(base.RobelTask):
     self._reference_start = np.zeros(12)
     self._mean_error = 0.0
     super().__init__(
-      **self._kitty.robel_task_arguments(_EPISODE_STEPS, **options)
+      self._kitty.task_scene(_EPISODE_STEPS), base.TaskOptions(**options)
     )
     self._kitty.bind_features(self)
     self._pose_error_feature = self._features['pose_error']

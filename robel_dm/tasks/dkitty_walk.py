@@ -97,8 +97,8 @@ class WalkTask(base.RobelTask):
       target_angle: direction of the target from straight ahead (+y), rad
         (or a Variation), counter-clockwise.
       terrain: walk on ROBEL's random heightfield instead of a plane.
-      **options: `RobelTask` options (`dynamics`, `observation_noise`,
-        `observation_keys`, `action_bounds`).
+      **options: `base.TaskOptions` fields (`dynamics`,
+        `observation_noise`, `observation_keys`, `action_bounds`, `reward`).
     """
     self._kitty = dkitty_common.KittyParts(terrain=terrain, upright=_UPRIGHT)
     self._target = self._kitty.add_target(*_TARGET_MARKERS)
@@ -107,7 +107,7 @@ class WalkTask(base.RobelTask):
     self._distance = 0.0
     self._heading = 0.0
     super().__init__(
-      **self._kitty.robel_task_arguments(_EPISODE_STEPS, **options)
+      self._kitty.task_scene(_EPISODE_STEPS), base.TaskOptions(**options)
     )
     self._kitty.bind_features(self)
     self._target_features = self.feature_span('heading', 'target_error')

@@ -62,7 +62,7 @@ class JointExcitation(base.RobelTask):
     Args:
       domain: 'dclaw' or 'dkitty'.
       duration: episode length, s (whole control steps).
-      **options: `RobelTask` options (e.g. `action_bounds`).
+      **options: `base.TaskOptions` fields (e.g. `action_bounds`).
 
     Raises:
       ValueError: for an unknown domain or a non-positive duration.
@@ -78,13 +78,13 @@ class JointExcitation(base.RobelTask):
     self._domain = domain
     self._center = np.array(CENTER_POSE[domain], dtype=float)
     self._error = np.zeros(joints)
-    super().__init__(
+    scene = base.Scene(
       arena=arena,
       robot=robot,
       control_timestep=CONTROL_TIMESTEP,
       episode_steps=max(1, round(duration / CONTROL_TIMESTEP)),
-      **options,
     )
+    super().__init__(scene, base.TaskOptions(**options))
     self._qpos_feature = self._features['qpos']
     self._qvel_feature = self._features['qvel']
 
