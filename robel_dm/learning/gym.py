@@ -29,12 +29,17 @@ for Turn and Screw with the 4-prong valve, `DClawTurnFixedValve4-v0` etc.
 from typing import Any
 
 import dm_env
-import gymnasium
-from gymnasium import spaces
 import numpy as np
 
 from robel_dm import robots, suite
+from robel_dm.learning import extra
 from robel_dm.tasks import base
+
+try:
+  import gymnasium
+  from gymnasium import spaces
+except ImportError as error:  # The optional learn extra.
+  raise extra.missing(error) from error
 
 NAMESPACE = 'robel_dm'
 _VARIANT_NAMES = {

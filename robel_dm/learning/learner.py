@@ -18,11 +18,15 @@ import queue
 import signal
 import time
 
-import gymnasium
 import numpy as np
 
-from robel_dm.learning import agents, demos, replay
+from robel_dm.learning import agents, demos, extra, replay
 from robel_dm.learning.actor import StochasticActor
+
+try:
+  import gymnasium
+except ImportError as error:  # The optional learn extra.
+  raise extra.missing(error) from error
 
 # The learner sends actor weights at most this often, s.
 _PUBLISH_INTERVAL = 0.2
@@ -112,74 +116,143 @@ def learner_main(setup: LearnerSetup, inbox, outbox, progress) -> None:
 
 
 def _learn(model, setup, schedule, checkpoint, queues, progress) -> None:
-  chunk, starts = schedule
+  """Learns from the transitions the inbox brings until told to stop.
+
+  Args:
+    model: the agent (its replay buffer ready for `setup.buffer_size`).
+    setup: the LearnerSetup.
+    schedule: (updates per chunk, transitions before the first update).
+    checkpoint: where the model is saved (its counts beside it, .json).
+    queues: (inbox, outbox), as in `learner_main`.
+    progress: the two shared integers of `learner_main`.
+  """
   inbox, outbox = queues
-  buffer = model.replay_buffer
-  # Updates already made by the checkpoint's networks (a resumed run's
-  # replayed transitions do not earn new ones).
-  counts = checkpoint.with_suffix('.json')
-  updates = 0
-  if setup.resume and counts.is_file():
-    updates = json.loads(counts.read_text())['updates']
-  seen = 0
-
-  def save() -> None:
-    model.save(str(checkpoint))
-    counts.write_text(json.dumps({'updates': updates, 'transitions': seen}))
-
+  learning = _Learning(model, setup, schedule, checkpoint, outbox, progress)
   parent = os.getppid()
-  # The actor as it is first (untrained, or the checkpoint's): the robot
-  # can act before any update.
-  outbox.put(('actor', agents.sac_actor_layers(model), updates))
-  published = time.monotonic()
+  learning.publish_first()
   while True:
-    allowed = (seen - starts) * setup.updates_per_step
-    can_update = seen >= starts and updates + chunk <= allowed
-    progress[1] = updates
-    if not can_update:
-      progress[0] = seen  # An actor that waits for us may go on.
-    try:
-      # Waits for data when there is nothing to learn yet.
-      message = inbox.get_nowait() if can_update else inbox.get(timeout=1.0)
-    except queue.Empty:
-      message = None
-      if os.getppid() != parent:  # The actor was killed: keep what we have.
-        save()
-        # Nobody reads the actor weights still queued: exit without waiting
-        # to hand them over (the process would hang there for ever).
-        outbox.cancel_join_thread()
-        return
+    ready = learning.ready()
+    # Waits for data when there is nothing to learn yet.
+    message = _receive(inbox, wait=not ready)
+    if message is None and os.getppid() != parent:
+      learning.abandon()  # The actor was killed: keep what we have.
+      return
     while message is not None:
-      kind = message[0]
-      if kind == 'data':
-        replay.store(buffer, message[1])
-        seen += len(message[1])
-      elif kind == 'save':
-        save()
-        outbox.put(('saved', updates))
-      elif kind == 'stop':
-        # The updates the transitions so far allow, then save: a stopped
-        # run's networks have learned from all it saw (a bounded wait).
-        backlog = int((seen - starts) * setup.updates_per_step) - updates
-        for _ in range(min(max(backlog, 0), _STOP_UPDATES) // chunk):
-          model.train(gradient_steps=chunk, batch_size=model.batch_size)
-          updates += chunk
-        progress[1] = updates
-        save()
-        outbox.put(('stopped', updates))
+      if learning.handle(message):
         return
-      try:
-        message = inbox.get_nowait()
-      except queue.Empty:
-        message = None
-    if can_update:
-      model.train(gradient_steps=chunk, batch_size=model.batch_size)
-      updates += chunk
-      now = time.monotonic()
-      if now - published >= _PUBLISH_INTERVAL:
-        outbox.put(('actor', agents.sac_actor_layers(model), updates))
-        outbox.put(('values', _logged(model)))
-        published = now
+      message = _receive(inbox, wait=False)
+    if ready:
+      learning.update()
+
+
+def _receive(inbox, wait: bool):
+  """The inbox's next message, or None if none came.
+
+  Args:
+    inbox: the learner's inbox.
+    wait: whether to wait for one (up to 1 s) rather than only look.
+  """
+  try:
+    return inbox.get(timeout=1.0) if wait else inbox.get_nowait()
+  except queue.Empty:
+    return None
+
+
+class _Learning:
+  """The learner's model and counts, and what it does with each message.
+
+  Attributes:
+    updates: the gradient updates the model has made (a resumed run's
+      networks count the checkpoint's).
+    seen: the transitions received (into the replay buffer).
+  """
+
+  def __init__(self, model, setup, schedule, checkpoint, outbox, progress):
+    self._model, self._setup = model, setup
+    self._buffer = model.replay_buffer
+    self._chunk, self._starts = schedule
+    self._checkpoint = checkpoint
+    self._outbox, self._progress = outbox, progress
+    # Updates already made by the checkpoint's networks (a resumed run's
+    # replayed transitions do not earn new ones).
+    self._counts = checkpoint.with_suffix('.json')
+    self.updates = 0
+    if setup.resume and self._counts.is_file():
+      self.updates = json.loads(self._counts.read_text())['updates']
+    self.seen = 0
+    self._published = 0.0  # When actor weights last went out.
+
+  def publish_first(self) -> None:
+    """Sends the actor as it is first (untrained, or the checkpoint's): the
+    robot can act before any update."""
+    self._outbox.put(
+      ('actor', agents.sac_actor_layers(self._model), self.updates)
+    )
+    self._published = time.monotonic()
+
+  def ready(self) -> bool:
+    """Whether the transitions seen allow another chunk of updates (and
+    tells the actor how far the learner has got)."""
+    allowed = (self.seen - self._starts) * self._setup.updates_per_step
+    ready = self.seen >= self._starts and self.updates + self._chunk <= allowed
+    self._progress[1] = self.updates
+    if not ready:
+      self._progress[0] = self.seen  # An actor that waits for us may go on.
+    return ready
+
+  def update(self) -> None:
+    """One chunk of updates; the actor weights and the logged values go out
+    at most every _PUBLISH_INTERVAL."""
+    self._train(1)
+    now = time.monotonic()
+    if now - self._published >= _PUBLISH_INTERVAL:
+      layers = agents.sac_actor_layers(self._model)
+      self._outbox.put(('actor', layers, self.updates))
+      self._outbox.put(('values', _logged(self._model)))
+      self._published = now
+
+  def handle(self, message) -> bool:
+    """Acts on one message of the inbox; True once told to stop."""
+    kind = message[0]
+    if kind == 'data':
+      replay.store(self._buffer, message[1])
+      self.seen += len(message[1])
+    elif kind == 'save':
+      self._save()
+      self._outbox.put(('saved', self.updates))
+    elif kind == 'stop':
+      self._stop()
+      return True
+    return False
+
+  def abandon(self) -> None:
+    """Saves, and lets the process end without handing over what it sent."""
+    self._save()
+    # Nobody reads the actor weights still queued: exit without waiting
+    # to hand them over (the process would hang there for ever).
+    self._outbox.cancel_join_thread()
+
+  def _stop(self) -> None:
+    # The updates the transitions so far allow, then save: a stopped
+    # run's networks have learned from all it saw (a bounded wait).
+    allowed = int((self.seen - self._starts) * self._setup.updates_per_step)
+    backlog = min(max(allowed - self.updates, 0), _STOP_UPDATES)
+    self._train(backlog // self._chunk)
+    self._progress[1] = self.updates
+    self._save()
+    self._outbox.put(('stopped', self.updates))
+
+  def _train(self, chunks: int) -> None:
+    for _ in range(chunks):
+      self._model.train(
+        gradient_steps=self._chunk, batch_size=self._model.batch_size
+      )
+      self.updates += self._chunk
+
+  def _save(self) -> None:
+    self._model.save(str(self._checkpoint))
+    counts = {'updates': self.updates, 'transitions': self.seen}
+    self._counts.write_text(json.dumps(counts))
 
 
 def _logged(model) -> dict[str, float]:

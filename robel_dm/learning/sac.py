@@ -26,12 +26,16 @@ the current multiplier, not at the one it was collected under.
 """
 
 import numpy as np
-import sbx
-from sbx.common.type_aliases import ReplayBufferSamplesNp
-from sbx.sac.policies import SACPolicy
 
-from robel_dm.learning import actor
+from robel_dm.learning import actor, extra
 from robel_dm.learning.safety import SafetyConstraint, step_violations
+
+try:
+  import sbx
+  from sbx.common.type_aliases import ReplayBufferSamplesNp
+  from sbx.sac.policies import SACPolicy
+except ImportError as error:  # The optional learn extra.
+  raise extra.missing(error) from error
 
 
 class NumpyActingPolicy(SACPolicy):

@@ -34,13 +34,12 @@ import pickle
 import time
 from typing import Any
 
-import gymnasium
-
 from robel_dm import evaluation, policies, provenance, suite
 from robel_dm.learning import (
   agents,
   curves,
   demos,
+  extra,
   replay,
   safety,
   telemetry,
@@ -61,6 +60,11 @@ from robel_dm.learning.run_files import (
   check_output_dir,
   clear_output_dir,
 )
+
+try:
+  import gymnasium
+except ImportError as error:  # The optional learn extra.
+  raise extra.missing(error) from error
 
 # Evaluation episodes are seeded from here on, training ones below it.
 EVAL_SEED_OFFSET = 1_000_000

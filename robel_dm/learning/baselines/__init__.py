@@ -128,39 +128,76 @@ def runs() -> list[Run]:
   then on RandomDynamics and the 4-prong valve, then the other agents,
   then the constrained agent (under a safety budget), then the agents
   tried `also` on tasks the default agent left unsolved."""
+  return (
+    _default_agent_runs()
+    + _every_agent_runs()
+    + _constrained_runs()
+    + _also_runs()
+  )
+
+
+def _run(key: str, algo: str, seed: int) -> Run:
+  """The run of `algo` on the plan's task `key` ('domain/task')."""
+  domain, task = key.split('/')
+  return Run(domain, task, algo, seed)
+
+
+def _tier(domain: str, task: str) -> str:
+  """Which of the default agent's tiers a task is in."""
+  if (domain, task) in suite.FIXED:
+    return 'fixed'
+  if (domain, task) in suite.RANDOM:
+    return 'random'
+  return 'other'
+
+
+def _default_agent_runs() -> list[Run]:
+  """The default agent on every task, tier by tier (Fixed, Random, the
+  rest with the 4-prong valve), each tier seed by seed."""
   tiers = {'fixed': [], 'random': [], 'other': []}
   for key in PLAN['tasks']:
     domain, task = key.split('/')
-    if (domain, task) in suite.FIXED:
-      tiers['fixed'].append((domain, task, False))
-    elif (domain, task) in suite.RANDOM:
-      tiers['random'].append((domain, task, False))
-    else:
-      tiers['other'].append((domain, task, False))
+    tiers[_tier(domain, task)].append((domain, task, False))
     if key in PLAN['valve4']:
       tiers['other'].append((domain, task, True))
-  table = []
-  for tier in tiers.values():
-    for seed in PLAN['seeds']:
-      for domain, task, valve4 in tier:
-        table.append(Run(domain, task, PLAN['default_agent'], seed, valve4))
-  for seed in PLAN['seeds']:
-    for key in PLAN['every_agent']:
-      domain, task = key.split('/')
-      for algo in PLAN['agents']:
-        if algo != PLAN['default_agent']:
-          table.append(Run(domain, task, algo, seed))
-  for seed in PLAN['seeds']:
-    for key in PLAN.get('constrained', []):
-      domain, task = key.split('/')
-      table.append(Run(domain, task, PLAN['constrained_agent'], seed))
-  for key, algos in PLAN.get('also', {}).items():
-    domain, task = key.split('/')
-    for seed in PLAN['seeds']:
-      for algo in algos:
-        if key not in PLAN['every_agent'] or algo not in PLAN['agents']:
-          table.append(Run(domain, task, algo, seed))
-  return table
+  return [
+    Run(domain, task, PLAN['default_agent'], seed, valve4)
+    for tier in tiers.values()
+    for seed in PLAN['seeds']
+    for domain, task, valve4 in tier
+  ]
+
+
+def _every_agent_runs() -> list[Run]:
+  """The other agents on the `every_agent` tasks, seed by seed."""
+  return [
+    _run(key, algo, seed)
+    for seed in PLAN['seeds']
+    for key in PLAN['every_agent']
+    for algo in PLAN['agents']
+    if algo != PLAN['default_agent']
+  ]
+
+
+def _constrained_runs() -> list[Run]:
+  """The constrained agent on the `constrained` tasks, seed by seed."""
+  return [
+    _run(key, PLAN['constrained_agent'], seed)
+    for seed in PLAN['seeds']
+    for key in PLAN.get('constrained', [])
+  ]
+
+
+def _also_runs() -> list[Run]:
+  """The agents tried `also` on a task, on every seed (those not already
+  in `_every_agent_runs`)."""
+  return [
+    _run(key, algo, seed)
+    for key, algos in PLAN.get('also', {}).items()
+    for seed in PLAN['seeds']
+    for algo in algos
+    if key not in PLAN['every_agent'] or algo not in PLAN['agents']
+  ]
 
 
 def select(pattern: str | None) -> list[Run]:
