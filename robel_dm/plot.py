@@ -165,8 +165,14 @@ def plot(
 
   Raises:
     ValueError: for unreadable files or a wrong number of labels.
+    ModuleNotFoundError: without matplotlib (the learn extra).
   """
-  import matplotlib  # noqa: PLC0415 (only the plot command needs it)
+  try:
+    import matplotlib  # noqa: PLC0415 (only the plot command needs it)
+  except ImportError as error:
+    raise ModuleNotFoundError(
+      'plots need matplotlib: pip install "robel_dm[learn]"', name=error.name
+    ) from error
 
   matplotlib.use('Agg')
   from matplotlib import pyplot  # noqa: PLC0415
@@ -196,7 +202,7 @@ def main(argv: Sequence[str] | None = None) -> int:
       args.output,
       args.labels.split(',') if args.labels else None,
     )
-  except (ValueError, OSError) as error:
+  except (ValueError, OSError, ImportError) as error:
     print(f'error: {error}', file=sys.stderr)
     return 2
   print(f'wrote {written}')

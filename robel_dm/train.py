@@ -175,6 +175,10 @@ def main(argv):
     else:
       _train_in_simulation(config, log)
   except ImportError as error:
+    if 'robel_dm[' in str(error) and 'robel_dm[learn]' not in str(error):
+      # Another extra, which it names (e.g. the hardware).
+      print(f'error: {error}', file=sys.stderr)
+      return 2
     print(
       f'error: training needs the learn extra '
       f'({(error.name or "a package").split(".")[0]} is missing): '

@@ -35,11 +35,19 @@ for _domain in suite.TASKS_BY_DOMAIN:
 
 
 def pytest_generate_tests(metafunc):
+  # A test marked `quick_on_first_task` runs its first task in the quick
+  # tier (`-m "not slow"`) and the others in the full suite only.
+  first_only = metafunc.definition.get_closest_marker('quick_on_first_task')
   for name, tasks in _TASK_PARAMETERS.items():
     if name in metafunc.fixturenames:
       assert tasks, f'no tasks for {name}'
       metafunc.parametrize(
-        name, tasks, ids=[f'{domain}-{task}' for domain, task in tasks]
+        name,
+        [
+          pytest.param(task, marks=pytest.mark.slow if first_only and i else ())
+          for i, task in enumerate(tasks)
+        ],
+        ids=[f'{domain}-{task}' for domain, task in tasks],
       )
 
 

@@ -186,6 +186,7 @@ def test_a_sweep_checks_every_task_policy_before_the_first_runs(
   assert not built
 
 
+@pytest.mark.slow
 def test_a_sound_policy_file_still_runs(run_main, tmp_path):
   path = _write(_policy(), tmp_path / 'policy.npz')
   output = tmp_path / 'results.json'
@@ -279,6 +280,7 @@ class _FullDisk:
     self._file.close()
 
 
+@pytest.mark.slow
 def test_a_failed_write_is_one_line_and_keeps_the_finished_episodes(
   run_main, monkeypatch, tmp_path
 ):
@@ -414,6 +416,7 @@ def test_a_bad_tracker_flag_is_one_line_before_anything_is_built(
 # --- Item 12a: a printed row is a saved row ----------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('workers', [1, 2])
 def test_ctrl_c_after_a_row_is_printed_finds_it_saved(
   workers, run_main, monkeypatch, tmp_path
@@ -441,6 +444,7 @@ def test_ctrl_c_after_a_row_is_printed_finds_it_saved(
   assert printed == rows[: len(printed)]
 
 
+@pytest.mark.slow
 def test_a_policy_runs_on_another_variant_only_when_asked(run_main):
   path = policies.baseline_path('dclaw', 'pose_fixed')
   argv = ('--domain=dclaw', '--task=pose_random', f'--policy={path}',

@@ -8,7 +8,7 @@ import shutil
 import numpy as np
 import pytest
 
-pytest.importorskip('sbx')
+pytest.importorskip('sbx', reason='needs robel_dm[learn]')
 
 from robel_dm import suite  # noqa: E402
 from robel_dm.evaluation import task_args  # noqa: E402
@@ -121,14 +121,15 @@ def sandbox(tmp_path, monkeypatch):
   return tmp_path
 
 
+@pytest.mark.slow
 def test_a_run_ends_with_validation_then_one_test_reading(sandbox, monkeypatch):
   from robel_dm import evaluation  # noqa: PLC0415
 
   real, seeds = evaluation.evaluate, []
 
-  def spy(config):
+  def spy(config, **reuse):
     seeds.append(config.seed)
-    return real(config)
+    return real(config, **reuse)
 
   monkeypatch.setattr(evaluation, 'evaluate', spy)
   run = baselines.Run('dclaw', 'pose_random', 'sac', 0)
@@ -179,6 +180,7 @@ def _lucky_run(monkeypatch, rising: bool):
   return run, baselines.train_run(run, log=lines.append), lines
 
 
+@pytest.mark.slow
 def test_an_early_stop_must_hold_on_fresh_episodes(sandbox, monkeypatch):
   # The lucky streak stops the run at its second evaluation; fresh episodes
   # of the (untrained) best policy fail, so it trains on, stopping and
@@ -200,6 +202,7 @@ def test_an_early_stop_must_hold_on_fresh_episodes(sandbox, monkeypatch):
   assert not baselines.settled(run) and not baselines.done(run)
 
 
+@pytest.mark.slow
 def test_a_best_policy_is_checked_once(sandbox, monkeypatch):
   # The best policy stays the first evaluated one: after its check fails,
   # later stops do not test it again (that would only wait for a lucky
@@ -217,7 +220,9 @@ def test_a_best_policy_is_checked_once(sandbox, monkeypatch):
   assert sum('was checked before: training on' in line for line in lines) == 2
 
 
+@pytest.mark.slow
 def test_demonstration_runs_use_the_reference_controller(sandbox):
+  pytest.importorskip('pyarrow', reason='needs robel_dm[data]')  # Demos.
   run = baselines.Run('dclaw', 'pose_random', 'bc', 0)
   record = baselines.train_run(run, log=lambda line: None)
   assert record['algo'] == 'bc' and record['env_steps'] == 0
@@ -225,6 +230,7 @@ def test_demonstration_runs_use_the_reference_controller(sandbox):
   assert len((demos / 'meta' / 'episodes.jsonl').read_text().splitlines()) == 2
 
 
+@pytest.mark.slow
 def test_runs_without_a_demonstrator_wait(sandbox, monkeypatch):
   monkeypatch.setitem(
     baselines.PLAN['tasks'], 'dclaw/turn_fixed', {'steps': 8, 'eval_every': 8}
@@ -235,9 +241,11 @@ def test_runs_without_a_demonstrator_wait(sandbox, monkeypatch):
   assert 'waits for a solved policy' in lines[0]
 
 
+@pytest.mark.slow
 def test_a_shipped_policy_demonstrates_in_a_checkout_without_runs(
   sandbox, monkeypatch
 ):
+  pytest.importorskip('pyarrow', reason='needs robel_dm[data]')  # Demos.
   # A fresh clone has policies/ but not runs/: demonstrations must not wait.
   monkeypatch.setitem(
     baselines.PLAN['tasks'], 'dclaw/turn_fixed', {'steps': 8, 'eval_every': 8}
@@ -253,9 +261,11 @@ def test_a_shipped_policy_demonstrates_in_a_checkout_without_runs(
   assert 'demonstrations of dclaw/turn_fixed by' in lines[0]
 
 
+@pytest.mark.slow
 def test_a_pinned_demonstrator_demonstrates_until_it_changes(
   sandbox, monkeypatch
 ):
+  pytest.importorskip('pyarrow', reason='needs robel_dm[data]')  # Demos.
   # The table's best policy of the task differs from its demonstrator; the
   # demonstrator records, once, and again when it is replaced.
   monkeypatch.setitem(
@@ -278,6 +288,7 @@ def test_a_pinned_demonstrator_demonstrates_until_it_changes(
   assert lines[1:] == [f'demonstrations of dclaw/turn_fixed by {pinned}']
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('key', baselines.PLAN['every_agent'])
 def test_a_task_without_a_controller_has_a_pinned_solved_demonstrator(key):
   # Every checkout must record the same demonstrations, whatever policy the
@@ -364,6 +375,7 @@ def test_the_chosen_run_is_shipped_when_its_policy_is_at_hand(sandbox):
   )
 
 
+@pytest.mark.slow
 def test_the_report_is_derived_from_the_records(sandbox):
   scheduling.train_queue(0, 1, 'dclaw_pose_*_sac_seed0', None)
   rows = json.loads(baselines.RESULTS.read_text())
@@ -392,6 +404,7 @@ def test_the_report_is_derived_from_the_records(sandbox):
   assert '| dclaw/turn_random (valve4) | not yet | no run yet |' in text
 
 
+@pytest.mark.slow
 def test_a_recorded_run_is_not_trained_again_without_its_folder(sandbox):
   scheduling.train_queue(0, 1, 'dclaw_pose_fixed_sac_seed0', None)
   rows = json.loads(baselines.RESULTS.read_text())
@@ -403,6 +416,7 @@ def test_a_recorded_run_is_not_trained_again_without_its_folder(sandbox):
   assert json.loads(baselines.RESULTS.read_text()) == rows
 
 
+@pytest.mark.slow
 def test_a_recorded_run_stands_when_the_plan_raises_its_budget(sandbox):
   # Its test episodes were read: training it on would make the test a
   # stopping rule. A longer run is a new run (--force).
@@ -418,6 +432,7 @@ def test_a_recorded_run_stands_when_the_plan_raises_its_budget(sandbox):
   assert baselines.done(run)
 
 
+@pytest.mark.slow
 def test_a_recorded_run_chosen_by_name_says_so_and_force_makes_it_again(
   sandbox, capsys
 ):
@@ -524,8 +539,9 @@ def test_list_says_when_nothing_is_left(sandbox, capsys):
   )
 
 
+@pytest.mark.slow
 def test_the_table_fans_out_over_ray(sandbox):
-  pytest.importorskip('ray')
+  pytest.importorskip('ray', reason='needs robel_dm[scale]')
   records = scheduling.train_ray('local', 'dclaw_pose_*_sac_seed0')
   assert sorted(r['task'] for r in records) == ['pose_fixed', 'pose_random']
   rows = json.loads(baselines.RESULTS.read_text())

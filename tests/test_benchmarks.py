@@ -73,7 +73,7 @@ def test_speed_ratio_is_a_bound_when_one_agent_is_unsolved(
 
 
 def test_every_candidate_setting_is_accepted_by_the_agent(benchmarks):
-  sbx = pytest.importorskip('sbx')
+  sbx = pytest.importorskip('sbx', reason='needs robel_dm[learn]')
   agent_settings = benchmarks('agent_settings')
   accepted = set(inspect.signature(sbx.SAC.__init__).parameters)
   for name, (hidden, hyperparameters) in agent_settings.SETTINGS.items():

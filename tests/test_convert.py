@@ -12,9 +12,9 @@ import pytest
 
 from robel_dm import evaluation, policies
 
-gymnasium = pytest.importorskip('gymnasium')
-sb3 = pytest.importorskip('stable_baselines3')
-sb3_contrib = pytest.importorskip('sb3_contrib')
+gymnasium = pytest.importorskip('gymnasium', reason='needs robel_dm[learn]')
+sb3 = pytest.importorskip('stable_baselines3', reason='needs robel_dm[learn]')
+sb3_contrib = pytest.importorskip('sb3_contrib', reason='needs robel_dm[learn]')
 
 from robel_dm.learning import convert  # noqa: E402 (after the skips)
 
@@ -50,6 +50,7 @@ def _main(capsys, *args):
   return code, captured.out, captured.err
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('algo', ['sac', 'tqc', 'ppo'])
 def test_converted_policy_acts_as_the_model(tmp_path, capsys, algo):
   path = _model(tmp_path, algo)
@@ -82,6 +83,7 @@ def test_converted_policy_acts_as_the_model(tmp_path, capsys, algo):
   assert len(results['records']) == 1
 
 
+@pytest.mark.slow
 def test_a_model_of_another_task_is_refused(tmp_path, capsys):
   path = _model(tmp_path, 'sac')
   with pytest.raises(
@@ -128,6 +130,7 @@ def test_bad_input_is_one_line(tmp_path, capsys):
   assert not (tmp_path / 'policy.npz').exists()
 
 
+@pytest.mark.slow
 def test_actions_that_differ_are_refused(tmp_path, capsys, monkeypatch):
   path = _model(tmp_path, 'ppo')
   build = convert.agents.numpy_policy
@@ -154,6 +157,7 @@ def test_actions_that_differ_are_refused(tmp_path, capsys, monkeypatch):
   assert not output.exists()
 
 
+@pytest.mark.slow
 def test_evaluate_names_the_conversion_for_a_zip(tmp_path):
   path = _model(tmp_path, 'sac')
   with pytest.raises(ValueError, match='robel_dm.learning.convert') as error:

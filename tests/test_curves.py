@@ -5,7 +5,7 @@ import pytest
 
 from robel_dm.learning import curves
 
-pytest.importorskip('matplotlib')
+pytest.importorskip('matplotlib', reason='needs robel_dm[learn]')
 
 
 def _log(*points):
@@ -35,6 +35,7 @@ def test_a_curve_skips_empty_logs_and_sorts_rows():
   assert values.shape == (0, 0)
 
 
+@pytest.mark.slow
 def test_a_task_figure_has_log_steps_seed_lines_and_a_caption():
   from matplotlib import pyplot  # noqa: PLC0415
 
@@ -63,6 +64,7 @@ def test_a_task_figure_has_log_steps_seed_lines_and_a_caption():
     pyplot.close(figure)
 
 
+@pytest.mark.slow
 def test_plot_task_writes_a_png(tmp_path):
   output = tmp_path / 'task.png'
   curves.plot_task({'sac': [_EARLY, _LONG, []]}, output, 'dclaw/turn_fixed')

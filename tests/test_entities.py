@@ -115,6 +115,7 @@ def test_station_mount_heights_are_robels():
     np.testing.assert_allclose(physics.bind(arena.mount).xpos, [0, 0, height])
 
 
+@pytest.mark.slow
 def test_tasks_mount_the_claw_at_robels_heights(
   dclaw_nominal_task_id, shared_env
 ):
@@ -126,6 +127,7 @@ def test_tasks_mount_the_claw_at_robels_heights(
   np.testing.assert_allclose(mount, [0, 0, expected])
 
 
+@pytest.mark.slow
 def test_pose_fixed_is_truly_fixed():
   envs = [suite.load('dclaw', 'pose_fixed', seed=seed) for seed in (0, 1)]
   first = [env.reset() for env in envs]
@@ -165,6 +167,7 @@ _KITTY_JOINT_ORDER = (
 )  # fmt: skip
 
 
+@pytest.mark.slow
 def test_dkitty_joints_and_actuators_are_in_robels_order():
   kitty = dkitty.DKitty()
   assert tuple(j.name for j in kitty.joints) == _KITTY_JOINT_ORDER
@@ -201,6 +204,7 @@ def test_dkitty_poses_are_robels():
   np.testing.assert_array_equal(dkitty.ROBEL_FRAME_ORIGIN, [0.0, 0.0, 0.3])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('task', ['stand_fixed', 'orient_random', 'walk_fixed'])
 def test_foot_sites_are_on_their_legs_in_the_compiled_task(task, shared_env):
   # The robot faces +y and its right side is +x (ROBEL swapped the FR and

@@ -60,6 +60,7 @@ def _assert_identical(timesteps_a, timesteps_b):
 # --- Seeded determinism ------------------------------------------------------
 
 
+@pytest.mark.quick_on_first_task
 def test_same_seed_gives_identical_episodes(task_id):
   episode_steps = suite.load(*task_id).task.episode_steps
   steps = episode_steps + 2  # Cross one reset.
@@ -70,6 +71,7 @@ def test_same_seed_gives_identical_episodes(task_id):
   _assert_identical(*runs)
 
 
+@pytest.mark.slow
 def test_different_seeds_give_different_initial_states(random_task_id):
   observations = [
     suite.load(*random_task_id, seed=seed).reset().observation
@@ -89,6 +91,7 @@ _DETERMINISTIC_AT_RESET = {
 }  # fmt: skip
 
 
+@pytest.mark.slow
 def test_different_seeds_give_different_dynamics_and_states(dynamics_task_id):
   envs = [suite.load(*dynamics_task_id, seed=seed) for seed in (1, 2)]
   observations = [env.reset().observation for env in envs]
@@ -109,6 +112,7 @@ def test_different_seeds_give_different_dynamics_and_states(dynamics_task_id):
     assert not np.array_equal(models[0].hfield_data, models[1].hfield_data)
 
 
+@pytest.mark.slow
 def test_fixed_variants_ignore_the_seed(fixed_task_id):
   envs = [suite.load(*fixed_task_id, seed=seed) for seed in (1, 2)]
   _assert_identical(*[[env.reset()] for env in envs])
@@ -140,6 +144,7 @@ def _overlapping_pairs(arrays):
   return pairs
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('substep_hook', [False, True], ids=['fast', 'hooked'])
 def test_observations_never_share_memory(task_id, substep_hook):
   env = suite.load(*task_id, seed=0)
@@ -166,6 +171,7 @@ def test_observations_never_share_memory(task_id, substep_hook):
       assert not np.shares_memory(arrays[j], arrays[k]), (owners[j], owners[k])
 
 
+@pytest.mark.quick_on_first_task
 def test_held_observations_do_not_change_later(task_id):
   env = suite.load(*task_id, seed=0)
   steps = env.task.episode_steps + 3
@@ -185,6 +191,7 @@ def test_held_observations_do_not_change_later(task_id):
       np.testing.assert_array_equal(value, copy[key])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
   'task', _ONE_TASK_PER_DOMAIN, ids=robel_spec.ids(_ONE_TASK_PER_DOMAIN)
 )
@@ -206,6 +213,7 @@ def test_writing_into_an_observation_changes_nothing_else(task):
 # --- Fast path ---------------------------------------------------------------
 
 
+@pytest.mark.quick_on_first_task
 def test_fast_path_is_bit_identical_to_composers_loop(task_id):
   fast = suite.load(*task_id, seed=3)
   reference = suite.load(*task_id, seed=3)
@@ -223,6 +231,7 @@ def test_fast_path_is_bit_identical_to_composers_loop(task_id):
                                 reference.physics.data.qacc)  # fmt: skip
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
   'integrator',
   [mujoco.mjtIntegrator.mjINT_RK4, mujoco.mjtIntegrator.mjINT_IMPLICITFAST],
@@ -272,6 +281,7 @@ def _divergences():
   return {'nan_qvel': nan_qvel, 'huge_qacc': huge_force}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('hooked', [False, True], ids=['fast', 'hooked'])
 @pytest.mark.parametrize('divergence', list(_divergences()))
 @pytest.mark.parametrize(
@@ -324,6 +334,7 @@ def test_physics_divergence_ends_the_episode_when_not_raising(
   assert env.step(policy(timestep)).first()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
   'task',
   [('dclaw', 'turn_fixed'), ('dkitty', 'stand_random_dynamics')],

@@ -15,6 +15,7 @@ from robel_dm import assets, evaluation, policies, suite, video
 from robel_dm.evaluation import task_args
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('task', ['pose_fixed', 'pose_random'])
 def test_reference_controller_solves_pose(task):
   results = evaluation.evaluate(
@@ -26,6 +27,7 @@ def test_reference_controller_solves_pose(task):
   assert results['safety']['velocity'] == 0
 
 
+@pytest.mark.slow
 def test_reference_controller_makes_the_dkitty_stand():
   results = evaluation.evaluate(
     evaluation.EvalConfig(
@@ -41,6 +43,7 @@ def test_reference_controller_makes_the_dkitty_stand():
   assert results['safety']['velocity'] == 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
   'domain, task', [('dclaw', 'turn_random'), ('dkitty', 'walk_random')]
 )
@@ -89,6 +92,7 @@ def test_random_policy_is_seeded_and_inside_the_bounds():
   assert not np.array_equal(actions[0], actions[1])
 
 
+@pytest.mark.slow
 def test_unknown_or_unavailable_policies_raise():
   env = suite.load('dclaw', 'turn_fixed', seed=0)
   with pytest.raises(ValueError, match='no scripted reference'):
@@ -131,6 +135,7 @@ def _run_cli(*flags, cwd):
   )  # fmt: skip
 
 
+@pytest.mark.slow
 def test_cli_prints_a_table_and_writes_json(tmp_path):
   output = tmp_path / 'results.json'
   result = _run_cli(
@@ -153,6 +158,7 @@ def test_cli_prints_a_table_and_writes_json(tmp_path):
   assert 'interrupted' not in results
 
 
+@pytest.mark.slow
 def test_cli_evaluates_a_dkitty_task(tmp_path):
   output = tmp_path / 'results.json'
   result = _run_cli(
@@ -169,6 +175,7 @@ def test_cli_evaluates_a_dkitty_task(tmp_path):
   assert results['success_rate'] == 1.0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
   'flags, message',
   [
@@ -194,6 +201,7 @@ def test_cli_rejects_bad_input_with_a_clear_message(flags, message, tmp_path):
   assert message in result.stderr
 
 
+@pytest.mark.slow
 def test_cli_lists_the_tasks(tmp_path):
   result = _run_cli('--list', cwd=tmp_path)
   assert result.returncode == 0, result.stderr
@@ -212,6 +220,7 @@ def _sweep(tmp_path, domain, policy):
   return result, json.loads(output.read_text())
 
 
+@pytest.mark.slow
 def test_cli_sweeps_every_task(tmp_path):
   result, results = _sweep(tmp_path, 'all', 'zero')
   assert [(r['domain'], r['task']) for r in results] == list(suite.ALL_TASKS)
@@ -220,6 +229,7 @@ def test_cli_sweeps_every_task(tmp_path):
   assert result.stdout.count('success rate') == len(suite.ALL_TASKS)
 
 
+@pytest.mark.slow
 def test_cli_checks_the_output_path_before_the_first_episode(tmp_path):
   result = _run_cli(
     '--episodes=1', f'--output={tmp_path}/missing/results.json', cwd=tmp_path
@@ -228,6 +238,7 @@ def test_cli_checks_the_output_path_before_the_first_episode(tmp_path):
   assert 'no folder' in result.stderr and 'episode' not in result.stdout
 
 
+@pytest.mark.slow
 def test_ctrl_c_mid_sweep_keeps_every_finished_episode(tmp_path):
   output = tmp_path / 'sweep.json'
   process = subprocess.Popen(
@@ -256,6 +267,7 @@ def test_ctrl_c_mid_sweep_keeps_every_finished_episode(tmp_path):
   assert 'marked interrupted' in errors
 
 
+@pytest.mark.slow
 def test_a_reference_sweep_skips_tasks_without_a_controller(tmp_path):
   result, results = _sweep(tmp_path, 'dkitty', 'reference')
   assert 'skipped dkitty/walk_fixed: no reference controller' in result.stderr
@@ -263,6 +275,7 @@ def test_a_reference_sweep_skips_tasks_without_a_controller(tmp_path):
   assert ran == ['stand_fixed', 'stand_random', 'stand_random_dynamics']
 
 
+@pytest.mark.slow
 def test_a_baseline_sweep_skips_tasks_without_a_shipped_policy(tmp_path):
   result, results = _sweep(tmp_path, 'dkitty', 'baseline')
   shipped = {
@@ -274,7 +287,9 @@ def test_a_baseline_sweep_skips_tasks_without_a_shipped_policy(tmp_path):
     assert f'skipped dkitty/{task}: no shipped baseline' in result.stderr
 
 
+@pytest.mark.slow
 def test_only_the_chosen_episodes_are_filmed(tmp_path, monkeypatch):
+  pytest.importorskip('imageio_ffmpeg', reason='needs robel_dm[video]')
   frames = []
   monkeypatch.setattr(
     video, 'render',
@@ -294,6 +309,7 @@ def test_only_the_chosen_episodes_are_filmed(tmp_path, monkeypatch):
   assert 's a frame here' in lines[0] and 'MUJOCO_GL=' in lines[0]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
   'flags, message',
   [
@@ -309,6 +325,7 @@ def test_bad_video_episodes_are_refused_in_one_line(flags, message, tmp_path):
   assert not (tmp_path / 'v').exists()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('policy', ['random', 'zero'])
 def test_workers_give_the_same_episodes_as_a_serial_run(policy):
   serial = evaluation.evaluate(
@@ -332,8 +349,9 @@ def test_workers_refuse_what_they_cannot_share():
     )
 
 
+@pytest.mark.slow
 def test_a_local_ray_instance_gives_the_same_episodes_as_a_serial_run():
-  pytest.importorskip('ray')
+  pytest.importorskip('ray', reason='needs robel_dm[scale]')
   serial = evaluation.evaluate(
     evaluation.EvalConfig('dclaw', 'pose_random', 3, policy='random', seed=2)
   )

@@ -5,6 +5,8 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 from robel_dm import gl_backend
 
 
@@ -31,6 +33,7 @@ def _headless():
   }  # fmt: skip
 
 
+@pytest.mark.slow
 def test_a_command_needs_no_environment_variable(tmp_path):
   # Before: GLFW's 'The DISPLAY environment variable is missing' warning.
   result = subprocess.run(
@@ -48,6 +51,7 @@ def test_a_command_needs_no_environment_variable(tmp_path):
   assert 'robel_dm chose it' in shown.stdout
 
 
+@pytest.mark.slow
 def test_the_viewer_undoes_the_offscreen_choice(tmp_path):
   # It needs a window: with no display it says so, not 'MUJOCO_GL=egl'.
   result = subprocess.run(

@@ -18,8 +18,14 @@ def test_every_configuration_is_pinned():
   assert sorted(_GOLDEN) == sorted(golden.name(*c) for c in _CONFIGS)
 
 
+# The quick tier (-m 'not slow') checks the first configuration only.
 @pytest.mark.parametrize(
-  'config', _CONFIGS, ids=[golden.name(*c) for c in _CONFIGS]
+  'config',
+  [
+    pytest.param(c, marks=() if i == 0 else pytest.mark.slow)
+    for i, c in enumerate(_CONFIGS)
+  ],
+  ids=[golden.name(*c) for c in _CONFIGS],
 )
 def test_trajectories_match_bit_for_bit(config):
   expected = _GOLDEN[golden.name(*config)]

@@ -17,7 +17,7 @@ from unittest import mock
 import numpy as np
 import pytest
 
-gymnasium = pytest.importorskip('gymnasium')
+gymnasium = pytest.importorskip('gymnasium', reason='needs robel_dm[learn]')
 
 from robel_dm import suite  # noqa: E402
 from robel_dm.learning import gym as robel_gym  # noqa: E402
@@ -105,6 +105,7 @@ def test_adapter_accepts_what_the_environment_accepts_with_same_targets(
   )
 
 
+@pytest.mark.slow
 def test_clipping_tasks_clip_in_the_adapter_too():
   kwargs = {'action_bounds': 'clip'}
   env = suite.load(*_TASK, task_kwargs=kwargs, seed=0)
@@ -177,6 +178,7 @@ def _run(code: str) -> subprocess.CompletedProcess:
   )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
   'imports, env_id', _IMPORT_ORDERS.values(), ids=_IMPORT_ORDERS
 )
@@ -196,6 +198,7 @@ def test_importing_robel_dm_stays_light():
   assert result.returncode == 0, result.stderr
 
 
+@pytest.mark.slow
 def test_robel_dm_works_without_gymnasium():
   result = _run("""
     import sys

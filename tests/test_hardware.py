@@ -12,7 +12,6 @@ import time
 
 import numpy as np
 import pytest
-import test_robot_safety as safety
 
 from robel_dm import evaluation, suite
 from robel_dm.hardware import config as config_lib
@@ -22,7 +21,10 @@ from robel_dm.hardware.dynamixel import client as dynamixel
 from robel_dm.hardware.dynamixel import control_table as table
 
 # Without the hardware extra these tests are skipped, not errors.
-sdk = pytest.importorskip('dynamixel_sdk')
+sdk = pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
+# Its fixtures and helpers need the extra too.
+import test_robot_safety as safety  # noqa: E402
+
 port_handler = sdk.port_handler
 
 # A virtual-bus episode replays a simulated one within these tolerances on
@@ -69,6 +71,7 @@ def _torque(bus):
   return {servo.motor_id: servo.torque_enabled for servo in bus.servos}
 
 
+@pytest.mark.slow
 def test_every_task_runs_full_episodes_with_the_simulation_spec(task_id):
   env = suite.load(*task_id, seed=0, robot=suite.RobotOptions('virtual'))
   simulated = suite.load(*task_id, seed=0)
@@ -92,6 +95,7 @@ def test_every_task_runs_full_episodes_with_the_simulation_spec(task_id):
     env.close()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
   'tracked_task',
   [('dclaw', 'pose_fixed'), ('dclaw', 'turn_fixed'), ('dkitty', 'stand_fixed'),
@@ -115,6 +119,7 @@ def test_virtual_bus_episode_tracks_the_simulation(tracked_task):
     env.close()
 
 
+@pytest.mark.slow
 def test_safety_counts_measured_currents():
   env = suite.load(
     'dclaw', 'pose_fixed', seed=0, robot=suite.RobotOptions('virtual')
@@ -135,6 +140,7 @@ def _current_counter(env) -> int:
   return int(env.task.task_observables['safety'](env.physics)[2])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
   'domain_task', _SAFETY_TASKS, ids=lambda task: '-'.join(task)
 )
@@ -171,6 +177,7 @@ def test_current_counter_on_hand_built_currents(domain_task):
     env.close()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
   'domain_task', _SAFETY_TASKS, ids=lambda task: '-'.join(task)
 )
@@ -221,6 +228,7 @@ def test_torque_is_off_after_close():
   assert not any(_torque(bus).values())
 
 
+@pytest.mark.slow
 def test_nan_actions_never_reach_the_bus():
   env = suite.load(
     'dclaw', 'pose_fixed', seed=0, robot=suite.RobotOptions('virtual')
@@ -239,6 +247,7 @@ def test_nan_actions_never_reach_the_bus():
     env.close()
 
 
+@pytest.mark.slow
 def test_an_exception_inside_a_step_releases_the_motors(monkeypatch):
   env = suite.load(
     'dclaw', 'pose_fixed', seed=0, robot=suite.RobotOptions('virtual')
@@ -259,6 +268,7 @@ def test_an_exception_inside_a_step_releases_the_motors(monkeypatch):
     env.close()
 
 
+@pytest.mark.slow
 def test_ctrl_c_during_a_step_releases_the_motors(monkeypatch):
   env = suite.load(
     'dclaw', 'turn_fixed', seed=0, robot=suite.RobotOptions('virtual')
@@ -279,6 +289,7 @@ def test_ctrl_c_during_a_step_releases_the_motors(monkeypatch):
     env.close()
 
 
+@pytest.mark.slow
 def test_overload_stops_the_episode_naming_the_motor():
   env = suite.load(
     'dclaw', 'pose_fixed', seed=0, robot=suite.RobotOptions('virtual')
@@ -295,6 +306,7 @@ def test_overload_stops_the_episode_naming_the_motor():
     env.close()
 
 
+@pytest.mark.slow
 def test_a_motor_that_disappears_is_named_and_the_rest_released(
   lockstep, short_timeouts
 ):
@@ -314,6 +326,7 @@ def test_a_motor_that_disappears_is_named_and_the_rest_released(
     env.close()
 
 
+@pytest.mark.slow
 def test_a_busy_virtual_bus_is_waited_for_and_a_silent_motor_still_named(
   monkeypatch,
 ):
@@ -342,6 +355,7 @@ def test_a_busy_virtual_bus_is_waited_for_and_a_silent_motor_still_named(
     env.close()
 
 
+@pytest.mark.slow
 def test_one_corrupted_or_lost_reply_is_retried_transparently(
   lockstep, short_timeouts
 ):
@@ -360,6 +374,7 @@ def test_one_corrupted_or_lost_reply_is_retried_transparently(
     env.close()
 
 
+@pytest.mark.slow
 def test_persistent_corruption_raises_instead_of_returning_stale_data(
   lockstep,
   short_timeouts,
@@ -468,6 +483,7 @@ def test_unknown_device_configuration_mismatch_is_rejected(tmp_path):
     )
 
 
+@pytest.mark.slow
 def test_hardware_reset_moves_to_the_initial_pose_without_simulated_settling():
   env = suite.load(
     'dkitty', 'stand_random', seed=0, robot=suite.RobotOptions('virtual')
@@ -489,6 +505,7 @@ def test_hardware_reset_moves_to_the_initial_pose_without_simulated_settling():
     env.close()
 
 
+@pytest.mark.slow
 def test_evaluation_runs_on_the_virtual_bus():
   results = evaluation.evaluate(
     evaluation.EvalConfig(

@@ -19,7 +19,6 @@ import textwrap
 import child_signals
 import numpy as np
 import pytest
-import test_robot_safety as safety
 
 from robel_dm.hardware import config as config_lib
 from robel_dm.hardware import shutdown
@@ -29,7 +28,9 @@ from robel_dm.hardware.dynamixel import protocol
 from robel_dm.hardware.dynamixel.protocol import Instruction
 
 # Without the hardware extra these tests are skipped, not errors.
-sdk = pytest.importorskip('dynamixel_sdk')
+sdk = pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
+# Its fixtures and helpers need the extra too.
+import test_robot_safety as safety  # noqa: E402
 
 # test_robot_safety's fixtures, here too, and its helpers. In-process tests
 # run in `lockstep` with the bus, so that only the injected faults fail.
@@ -82,6 +83,7 @@ worker.join()
 """
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('signum', _EXIT_SIGNALS, ids=lambda s: s.name)
 def test_an_exit_signal_releases_a_robot_driven_from_a_worker_thread(
   standalone_bus, signum
@@ -106,6 +108,7 @@ def test_an_exit_signal_releases_a_robot_driven_from_a_worker_thread(
   assert 'will not release' not in errors
 
 
+@pytest.mark.slow
 def test_after_an_exit_signal_released_the_robot_it_sends_nothing_more(
   lockstep, claw, monkeypatch
 ):
@@ -123,6 +126,7 @@ def test_after_an_exit_signal_released_the_robot_it_sends_nothing_more(
   assert not any(s.torque_enabled for s in bus.servos)
 
 
+@pytest.mark.slow
 def test_connecting_from_a_worker_thread_warns_when_signals_cannot_release(
   standalone_bus,
 ):
@@ -157,6 +161,7 @@ def test_connecting_from_a_worker_thread_warns_when_signals_cannot_release(
   assert 'import robel_dm.hardware.shutdown in the main thread' in errors
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('signum', _EXIT_SIGNALS, ids=lambda s: s.name)
 def test_without_a_robot_an_exit_signal_acts_as_its_default(signum):
   code = textwrap.dedent(f"""
@@ -180,6 +185,7 @@ def test_without_a_robot_an_exit_signal_acts_as_its_default(signum):
 # --- Torque-off retried -------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_a_motor_that_misses_two_packets_is_still_released(lockstep, claw):
   bus = claw.virtual_bus
   assert bus.servo(22).torque_enabled
@@ -190,6 +196,7 @@ def test_a_motor_that_misses_two_packets_is_still_released(lockstep, claw):
   assert not bus.faults.mute
 
 
+@pytest.mark.slow
 def test_motors_that_cannot_be_released_are_named_in_one_error_line(
   lockstep, claw, caplog
 ):
@@ -209,6 +216,7 @@ def test_motors_that_cannot_be_released_are_named_in_one_error_line(
   )
 
 
+@pytest.mark.slow
 def test_motors_that_miss_the_release_are_asked_again_together(
   lockstep, claw, monkeypatch
 ):
@@ -252,6 +260,7 @@ def test_a_goal_sent_again_is_read_back_before_the_step_returns(
   assert bus.servo(12).goal_position == sent
 
 
+@pytest.mark.slow
 def test_a_goal_lost_again_when_sent_again_ends_the_step(lockstep, claw):
   bus = claw.virtual_bus
   claw.step(np.full(9, -0.1))
@@ -308,6 +317,7 @@ _LATE_REPLIES = {
 }
 
 
+@pytest.mark.slow
 def test_reset_drains_a_late_reply_ahead_of_its_health_read(
   lockstep, claw, monkeypatch
 ):
@@ -320,6 +330,7 @@ def test_reset_drains_a_late_reply_ahead_of_its_health_read(
   assert claw.step(np.zeros(9)).mid()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('late_reply', _LATE_REPLIES)
 def test_a_late_reply_is_not_taken_for_the_health_read(
   lockstep, claw, monkeypatch, late_reply
@@ -340,6 +351,7 @@ def test_a_late_reply_is_not_taken_for_the_health_read(
   )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('late_reply', _LATE_REPLIES)
 def test_a_late_reply_is_not_taken_for_a_register_read(
   lockstep, claw, monkeypatch, late_reply
@@ -356,6 +368,7 @@ def test_a_late_reply_is_not_taken_for_a_register_read(
   assert claw.step(np.zeros(9)).mid()  # Nothing left behind in the port.
 
 
+@pytest.mark.slow
 def test_late_replies_to_every_health_read_name_the_motor_and_port(
   lockstep, claw, monkeypatch
 ):
@@ -375,6 +388,7 @@ def test_late_replies_to_every_health_read_name_the_motor_and_port(
   assert not isinstance(error.value, dynamixel.MissingMotorError)
 
 
+@pytest.mark.slow
 def test_late_replies_to_every_register_read_name_the_motor_and_port(
   lockstep, claw, monkeypatch
 ):
@@ -392,6 +406,7 @@ def test_late_replies_to_every_register_read_name_the_motor_and_port(
   assert _device_path(claw) in str(error.value)
 
 
+@pytest.mark.slow
 def test_a_motor_silent_in_the_health_read_is_named_with_the_port(
   lockstep, claw
 ):

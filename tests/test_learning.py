@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-gymnasium = pytest.importorskip('gymnasium')
+gymnasium = pytest.importorskip('gymnasium', reason='needs robel_dm[learn]')
 from gymnasium.utils import env_checker  # noqa: E402
 
 from robel_dm import assets, evaluation, policies, suite  # noqa: E402
@@ -36,6 +36,7 @@ def test_every_task_and_valve4_variant_has_robels_name():
   assert all(env_id in gymnasium.envs.registry for env_id in _IDS)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('env_id', sorted(_IDS))
 def test_adapter_conforms_and_keeps_signals_out_of_the_observation(env_id):
   env = gymnasium.make(env_id)
@@ -63,6 +64,7 @@ def test_adapter_conforms_and_keeps_signals_out_of_the_observation(env_id):
     env.close()
 
 
+@pytest.mark.slow
 def test_seeded_resets_reproduce():
   env = gymnasium.make('robel_dm/DClawTurnRandom-v0')
   first, _ = env.reset(seed=5)
@@ -74,6 +76,7 @@ def test_seeded_resets_reproduce():
   env.close()
 
 
+@pytest.mark.slow
 def test_time_limit_truncates_and_a_fall_terminates():
   env = gymnasium.make('robel_dm/DClawPoseFixed-v0')
   env.reset(seed=0)
@@ -114,6 +117,7 @@ def test_suite_arguments_pass_through():
   env.close()
 
 
+@pytest.mark.slow
 def test_async_vector_env_runs_the_tasks():
   envs = gymnasium.vector.AsyncVectorEnv(
     [lambda: gymnasium.make('robel_dm/DClawPoseFixed-v0')] * 2
@@ -152,6 +156,7 @@ def _tiny_policy(tmp_path, task='pose_fixed', keys=None) -> pathlib.Path:
   return path
 
 
+@pytest.mark.slow
 def test_numpy_policy_round_trips_and_evaluates(tmp_path):
   path = _tiny_policy(tmp_path)
   policy = policies.load(path)
@@ -194,8 +199,9 @@ def test_policy_errors_are_clear(tmp_path):
     policies.load(bad)
 
 
+@pytest.mark.slow
 def test_saved_policy_runs_on_the_virtual_bus(tmp_path):
-  pytest.importorskip('dynamixel_sdk')  # The hardware extra.
+  pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
   path = _tiny_policy(tmp_path)
   results = evaluation.evaluate(
     evaluation.EvalConfig(
@@ -248,6 +254,7 @@ def test_every_solved_task_ships_a_policy():
   assert set(_SHIPPED) == solved
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
   'shipped', _SHIPPED, ids=['/'.join(t) for t in _SHIPPED]
 )
@@ -275,8 +282,9 @@ def test_shipped_baselines_reproduce_their_rows(shipped):
   assert stats.fisher_exact(table, alternative='less').pvalue >= 0.01
 
 
+@pytest.mark.slow
 def test_the_pose_baseline_runs_on_the_virtual_bus():
-  pytest.importorskip('dynamixel_sdk')  # The hardware extra.
+  pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
   results = evaluation.evaluate(
     evaluation.EvalConfig(
       'dclaw',

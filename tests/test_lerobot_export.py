@@ -12,7 +12,7 @@ import sys
 import numpy as np
 import pytest
 
-pa = pytest.importorskip('pyarrow')
+pa = pytest.importorskip('pyarrow', reason='needs robel_dm[data]')
 
 import pyarrow.dataset  # noqa: E402
 import pyarrow.parquet as pq  # noqa: E402
@@ -75,6 +75,7 @@ def _lines(path):
   return [json.loads(line) for line in path.read_text().splitlines()]
 
 
+@pytest.mark.slow
 def test_metadata_follows_lerobot_v2_1(dataset):
   out, info = dataset
   assert json.loads((out / 'meta/info.json').read_text()) == info
@@ -103,6 +104,7 @@ def test_metadata_follows_lerobot_v2_1(dataset):
   assert names[9:18] == [f'last_action.{joint}' for joint in joints]
 
 
+@pytest.mark.slow
 def test_data_files_match_the_features(dataset):
   out, info = dataset
   features = info['features']
@@ -173,6 +175,7 @@ def test_episode_stats_describe_the_frames(dataset):
   assert set(first['stats']) == set(info['features'])
 
 
+@pytest.mark.slow
 def test_command_line_export_and_its_errors(dataset, tmp_path):
   out, _ = dataset
   recording_dir = out.parent / 'rec'
@@ -302,6 +305,7 @@ def test_v30_tasks_and_stats(dataset_v30):
   assert stats['action']['count'] == [info['total_frames']]
 
 
+@pytest.mark.slow
 def test_v30_frames_are_observation_then_action_taken(dataset_v30):
   out, info = dataset_v30
   whole = {
@@ -329,6 +333,7 @@ def test_export_refuses_an_unknown_version(recorded, tmp_path):
   assert not (tmp_path / 'x').exists()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
   'domain, task', [('dclaw', 'turn_fixed'), ('dkitty', 'walk_fixed')]
 )
@@ -382,6 +387,7 @@ def test_exported_episodes_keep_their_recording_index_and_seed(
   ] == expected
 
 
+@pytest.mark.slow
 def test_an_episode_without_a_seed_keeps_its_index(tmp_path):
   # A Recorder used without evaluate records no episode_seed: after one
   # that has it, its row says None (and the seed is not dropped).
@@ -409,11 +415,12 @@ def test_an_episode_without_a_seed_keeps_its_index(tmp_path):
   ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('version', lerobot.VERSIONS)
 def test_motor_times_are_relative_to_the_episode(tmp_path, version):
   # time.monotonic() is the uptime: in float32 (LeRobot's tensors) it keeps
   # 6e-5 s after 10 minutes, 0.06 s after 10 days.
-  pytest.importorskip('dynamixel_sdk')
+  pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
   env = suite.load(
     'dclaw',
     'pose_fixed',

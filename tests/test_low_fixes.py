@@ -17,7 +17,6 @@ from absl import flags
 import numpy as np
 import pytest
 import test_bad_input as bad_input
-import test_robot_safety as safety
 
 from robel_dm import policies, suite
 from robel_dm.evaluation import cli
@@ -25,6 +24,18 @@ from robel_dm.hardware.dynamixel import client as dynamixel
 from robel_dm.hardware.dynamixel import control_table as table
 from robel_dm.hardware.dynamixel import protocol
 from robel_dm.hardware.dynamixel.protocol import Instruction
+
+# The bus tests need the hardware extra (the virtual bus and
+# test_robot_safety's fixtures); without it they skip, the others run.
+try:
+  import dynamixel_sdk  # noqa: F401
+except ImportError:
+  safety = None
+else:
+  import test_robot_safety as safety
+needs_hardware = pytest.mark.skipif(
+  safety is None, reason='needs robel_dm[hardware]'
+)
 
 FLAGS = flags.FLAGS
 
@@ -64,6 +75,7 @@ def _huge_policy(path):
   return path
 
 
+@pytest.mark.slow
 def test_a_policy_declaring_gigabytes_is_refused_from_its_headers(tmp_path):
   path = _huge_policy(tmp_path / 'policy.npz')
   child = subprocess.run(
@@ -148,9 +160,10 @@ def test_an_output_that_is_the_baseline_policy_is_refused(
 
 # --- Bus failures named by their cause ----------------------------------------
 
-lockstep = safety.lockstep
-claw = safety.claw
-short_timeouts = safety.short_timeouts
+if safety is not None:
+  lockstep = safety.lockstep
+  claw = safety.claw
+  short_timeouts = safety.short_timeouts
 
 
 def _device_path(env) -> str:
@@ -186,6 +199,8 @@ def _ping_of(motor_id):
   )
 
 
+@pytest.mark.slow
+@needs_hardware
 def test_wrong_length_state_replies_are_not_called_a_bad_checksum(
   lockstep, claw, monkeypatch
 ):
@@ -207,6 +222,8 @@ def test_wrong_length_state_replies_are_not_called_a_bad_checksum(
   assert 'checksum' not in message and 'corrupt' not in message
 
 
+@pytest.mark.slow
+@needs_hardware
 def test_a_wrong_length_ping_reply_is_not_called_silence(claw, monkeypatch):
   # Motor 22 answers every ping with 5 bytes (model, firmware, 2 more).
   client, bus = claw.robot.client, claw.virtual_bus
@@ -258,6 +275,8 @@ def _stall(monkeypatch, bus, reads: int):
   return held
 
 
+@pytest.mark.slow
+@needs_hardware
 def test_a_whole_bus_stall_is_not_blamed_on_the_first_motor(
   lockstep, short_timeouts, claw, monkeypatch
 ):
@@ -292,6 +311,8 @@ def test_a_whole_bus_stall_is_not_blamed_on_the_first_motor(
 # --- A closed robot environment's physics -------------------------------------
 
 
+@pytest.mark.slow
+@needs_hardware
 def test_a_closed_robot_physics_says_it_is_closed():
   env = suite.load(
     'dclaw', 'pose_fixed', seed=0, robot=suite.RobotOptions('virtual')

@@ -12,7 +12,9 @@ import pytest
 
 from robel_dm.hardware.tracking import natnet
 
-reference = pytest.importorskip('natnet.data_frame')
+reference = pytest.importorskip(
+  'natnet.data_frame', reason='needs robel_dm[dev]'
+)
 from natnet.packet_buffer import PacketBuffer  # noqa: E402
 from natnet.version import Version  # noqa: E402
 

@@ -17,8 +17,15 @@ _MODELS = sorted(
 )
 
 
+def _needs_build_tools():
+  # Builds run without isolation, on the dev extra's build and hatchling.
+  pytest.importorskip('build', reason='needs robel_dm[dev]')
+  pytest.importorskip('hatchling', reason='needs robel_dm[dev]')
+
+
 @pytest.fixture(scope='module')
 def wheel(tmp_path_factory) -> pathlib.Path:
+  _needs_build_tools()
   # Build from a copy so that no build artifacts land in the checkout.
   source = tmp_path_factory.mktemp('source')
   for name in ('pyproject.toml', 'README.md'):
@@ -49,6 +56,7 @@ def test_wheel_contains_every_model(wheel):
   assert shipped and set(shipped) <= names
 
 
+@pytest.mark.slow
 def test_installed_wheel_loads_tasks_from_packaged_models(wheel, tmp_path):
   target = tmp_path / 'site'
   subprocess.run(
@@ -79,9 +87,11 @@ def test_installed_wheel_loads_tasks_from_packaged_models(wheel, tmp_path):
   )
 
 
+@pytest.mark.slow
 def test_source_distribution_is_the_repository_less_ci(tmp_path):
   # The tests read docs/ (the baseline table) and benchmarks/: an sdist
   # missing a tracked file could not run its own tests.
+  _needs_build_tools()
   try:
     listing = subprocess.run(
       ['git', 'ls-files', '-z'],

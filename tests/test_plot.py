@@ -9,7 +9,7 @@ import pytest
 
 from robel_dm import evaluation, plot
 
-pytest.importorskip('matplotlib')
+pytest.importorskip('matplotlib', reason='needs robel_dm[learn]')
 
 
 @pytest.fixture(scope='module')
@@ -44,6 +44,7 @@ def test_a_count_interval_never_goes_below_zero():
   assert plot.interval('position', counts) == (mean, low, high)
 
 
+@pytest.mark.slow
 def test_a_sweep_gets_a_row_of_panels_per_robot():
   def result(domain, task):
     return {'domain': domain, 'task': task, 'records': [
@@ -63,6 +64,7 @@ def test_a_sweep_gets_a_row_of_panels_per_robot():
   assert not any(a.get_legend() for a in axes) and figure.legends
 
 
+@pytest.mark.slow
 def test_plot_command_writes_the_figure(result_files, tmp_path):
   output = tmp_path / 'fig.png'
   result = subprocess.run(

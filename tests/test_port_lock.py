@@ -16,14 +16,15 @@ import textwrap
 import time
 
 import pytest
-import test_robot_safety as safety
 
 from robel_dm.hardware import config
 from robel_dm.hardware.dynamixel import client as dynamixel
 from robel_dm.hardware.dynamixel import control_table as table
 from robel_dm.hardware.dynamixel import protocol
 
-sdk = pytest.importorskip('dynamixel_sdk')
+sdk = pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
+# Its fixtures and helpers need the extra too.
+import test_robot_safety as safety  # noqa: E402
 
 _CLAW_IDS = [joint.id for joint in config.default('dclaw').joints]
 _STARTUP_TIMEOUT_S = 60
@@ -129,6 +130,7 @@ def test_a_refused_second_program_leaves_the_holders_port_untouched(
   assert safety.read_torque(device_path) == dict.fromkeys(_CLAW_IDS, 0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
   'missing',
   [('serial',), ('serial', 'dynamixel_sdk')],

@@ -149,6 +149,7 @@ def test_noise_halfwidths_are_a_fraction_of_half_the_width():
 # --- RandomDynamics tasks ----------------------------------------------------
 
 
+@pytest.mark.slow
 def test_dynamics_stay_in_robels_ranges_and_do_not_compound(
   dclaw_dynamics_task_id,
 ):
@@ -256,6 +257,7 @@ def _assert_valve_station_draw(current, nominal, mount, colored) -> None:
   np.testing.assert_array_equal(rgba[~colored], nominal['geom_rgba'][~colored])
 
 
+@pytest.mark.slow
 def test_nominal_variants_leave_the_model_alone(nominal_task_id):
   nominal_env = suite.load(*_fixed_counterpart(nominal_task_id), seed=0)
   nominal = _snapshot(nominal_env.physics.model)  # As built, never reset.
@@ -379,6 +381,7 @@ def _valve_reward(goal, angle, qpos, qvel):
   return reward, 1 - distance / np.pi
 
 
+@pytest.mark.slow
 def test_observation_noise_is_bounded_and_rewards_use_the_true_state(
   dclaw_dynamics_task_id,
 ):
@@ -443,6 +446,7 @@ def _spread(values, bounds):
   return (np.max(values) - np.min(values)) / (bounds[1] - bounds[0])
 
 
+@pytest.mark.slow
 def test_dkitty_dynamics_stay_in_robels_ranges_and_do_not_compound(
   dkitty_dynamics_task_id,
 ):
@@ -546,6 +550,7 @@ def _scaled_mass(current, nominal, physics) -> float:
   return total
 
 
+@pytest.mark.slow
 def test_dkitty_observation_noise_is_on_the_legs_only(dkitty_dynamics_task_id):
   task_id = dkitty_dynamics_task_id
   family = robel_spec.family(task_id)

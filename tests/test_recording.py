@@ -10,11 +10,12 @@ import time
 import numpy as np
 import pytest
 
-pytest.importorskip('pyarrow')
+pytest.importorskip('pyarrow', reason='needs robel_dm[data]')
 
 from robel_dm import evaluation, policies, recording, suite  # noqa: E402
 
 
+@pytest.mark.slow
 def test_every_field_round_trips_in_simulation(tmp_path):
   results = evaluation.evaluate(
     evaluation.EvalConfig(
@@ -58,8 +59,9 @@ def test_parquet_files_open_with_pyarrow_alone(tmp_path):
   )  # fmt: skip
 
 
+@pytest.mark.slow
 def test_motor_state_is_recorded_on_the_virtual_bus(tmp_path):
-  pytest.importorskip('dynamixel_sdk')
+  pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
   evaluation.evaluate(evaluation.EvalConfig(
     'dclaw', 'pose_fixed', 1, policy='zero',
     robot=suite.RobotOptions('virtual'), record=str(tmp_path),
@@ -74,6 +76,7 @@ def test_motor_state_is_recorded_on_the_virtual_bus(tmp_path):
   assert episode.metadata['device_path'] == 'virtual'
 
 
+@pytest.mark.slow
 def test_replay_reproduces_a_simulated_episode_exactly(tmp_path):
   evaluation.evaluate(
     evaluation.EvalConfig(
@@ -98,6 +101,7 @@ def test_replay_reproduces_a_simulated_episode_exactly(tmp_path):
     )
 
 
+@pytest.mark.slow
 def test_demonstrations_from_the_reference_controller_load(tmp_path):
   evaluation.evaluate(
     evaluation.EvalConfig(
@@ -132,6 +136,7 @@ def test_a_full_disk_fails_before_the_first_step(tmp_path, monkeypatch):
     )
 
 
+@pytest.mark.slow
 def test_kill_9_keeps_every_step_older_than_a_second(tmp_path):
   code = f"""
 import time, numpy as np
@@ -175,6 +180,7 @@ while True:
   assert len(partial) - 1 >= max(old)  # Minus the reset's row.
 
 
+@pytest.mark.slow
 def test_the_command_line_summarizes_a_recording(tmp_path):
   evaluation.evaluate(
     evaluation.EvalConfig(
@@ -199,8 +205,9 @@ def test_the_command_line_summarizes_a_recording(tmp_path):
   assert bad.returncode == 2 and 'not a robel_dm recording' in bad.stderr
 
 
+@pytest.mark.slow
 def test_motor_health_and_faults_are_recorded_on_the_virtual_bus(tmp_path):
-  pytest.importorskip('dynamixel_sdk')
+  pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
   from robel_dm import suite  # noqa: PLC0415
   from robel_dm.hardware.dynamixel import control_table as table  # noqa: PLC0415
 

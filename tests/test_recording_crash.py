@@ -13,7 +13,7 @@ import warnings
 import numpy as np
 import pytest
 
-pytest.importorskip('pyarrow')
+pytest.importorskip('pyarrow', reason='needs robel_dm[data]')
 
 from robel_dm import evaluation, recording, suite  # noqa: E402
 from robel_dm.recording import format as format_lib  # noqa: E402
@@ -136,6 +136,7 @@ PHASES = {
 }  # fmt: skip
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('phase', list(PHASES))
 def test_a_kill_at_each_write_phase_loses_no_finished_episode(tmp_path, phase):
   output = _killed_child(tmp_path, phase)
@@ -179,6 +180,7 @@ def test_next_index_counts_unfinished_parquet_files(tmp_path):
   assert format_lib.next_index(tmp_path) == 5
 
 
+@pytest.mark.slow
 def test_a_truncated_parquet_file_costs_only_its_episode(tmp_path):
   evaluation.evaluate(
     evaluation.EvalConfig(
@@ -202,6 +204,7 @@ def test_a_truncated_parquet_file_costs_only_its_episode(tmp_path):
   assert [e.metadata['episode_index'] for e in episodes] == [0, 2, 3]
 
 
+@pytest.mark.slow
 def test_an_unreadable_parquet_file_falls_back_to_its_stream(tmp_path):
   # A kill after the rename left both files; then the Parquet file is
   # damaged: the episode is read from the stream.
@@ -214,6 +217,7 @@ def test_an_unreadable_parquet_file_falls_back_to_its_stream(tmp_path):
   assert len(messages) == 1 and 'read from its stream' in messages[0]
 
 
+@pytest.mark.slow
 def test_a_torn_episodes_line_costs_only_its_episode(tmp_path):
   evaluation.evaluate(
     evaluation.EvalConfig(
@@ -249,6 +253,7 @@ def _flush_threads() -> list[threading.Thread]:
   ]
 
 
+@pytest.mark.slow
 def test_a_stalled_loop_still_reaches_the_disk(tmp_path):
   env = recording.Recorder(suite.load('dclaw', 'pose_fixed', seed=0), tmp_path)
   try:
@@ -273,6 +278,7 @@ def test_a_stalled_loop_still_reaches_the_disk(tmp_path):
   assert len(episode) == 4 and episode.metadata['complete'] is False
 
 
+@pytest.mark.slow
 def test_every_write_the_guarantee_needs_is_fsynced(tmp_path, monkeypatch):
   if not os.path.isdir('/proc/self/fd'):
     pytest.skip('names a descriptor through /proc')
@@ -306,6 +312,7 @@ def test_every_write_the_guarantee_needs_is_fsynced(tmp_path, monkeypatch):
   assert synced == []
 
 
+@pytest.mark.slow
 def test_a_directory_of_another_task_is_refused_untouched(tmp_path):
   evaluation.evaluate(
     evaluation.EvalConfig(
@@ -337,6 +344,7 @@ def test_a_directory_of_another_task_is_refused_untouched(tmp_path):
   assert len(recording.read(tmp_path)) == 2
 
 
+@pytest.mark.slow
 def test_the_summary_counts_safety_after_the_reset_as_evaluate(tmp_path):
   # D'Claw Turn starts with joints near their limits: the reset's row has
   # position violations, the steps after it none.

@@ -16,7 +16,7 @@ import warnings
 import numpy as np
 import pytest
 
-pa = pytest.importorskip('pyarrow')
+pa = pytest.importorskip('pyarrow', reason='needs robel_dm[data]')
 
 import pyarrow.ipc  # noqa: E402, F401
 import pyarrow.parquet as pq  # noqa: E402
@@ -119,6 +119,7 @@ def _without_line_checksums(directory) -> None:
   path.write_text(''.join(json.dumps(line) + '\n' for line in lines))
 
 
+@pytest.mark.slow
 def test_a_list_row_of_the_wrong_length_costs_only_its_episode(copy):
   directory, _ = copy
   _without_line_checksums(directory)
@@ -142,6 +143,7 @@ def test_a_list_row_of_the_wrong_length_costs_only_its_episode(copy):
   assert f'3 episodes, {80 + 80 + STREAM_ROWS - 1} steps' in done.stdout
 
 
+@pytest.mark.slow
 def test_a_stream_batch_pointing_past_its_data_is_named_not_a_crash(copy):
   # List offsets out of bounds: the reader used to read far past the
   # batch's data (a segmentation fault) rather than validate it first.
@@ -175,6 +177,7 @@ def test_a_stream_batch_pointing_past_its_data_is_named_not_a_crash(copy):
   _assert_equal_steps(episode.steps, episodes[3].steps, 5)
 
 
+@pytest.mark.slow
 def test_a_changed_value_in_a_finished_file_is_found_by_its_checksum(copy):
   # A valid Parquet file with another reward: the file's checks cannot
   # know, its SHA-256 in episodes.jsonl does.
@@ -214,6 +217,7 @@ def test_a_changed_value_in_a_stream_is_found_by_its_checksum(copy):
   _assert_equal_steps(read[3].steps, episodes[3].steps, 6)
 
 
+@pytest.mark.slow
 def test_random_bit_flips_in_both_robots_files_are_named_or_harmless(
   monkeypatch, tmp_path
 ):

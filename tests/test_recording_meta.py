@@ -12,7 +12,7 @@ from absl import flags
 import numpy as np
 import pytest
 
-pytest.importorskip('pyarrow')
+pytest.importorskip('pyarrow', reason='needs robel_dm[data]')
 
 from robel_dm import evaluation, policies, recording, suite  # noqa: E402
 from robel_dm.evaluation import cli  # noqa: E402
@@ -40,6 +40,7 @@ def _steps(directory):
   return [e.steps for e in recording.read(directory)]
 
 
+@pytest.mark.slow
 def test_replay_from_the_recorded_seed_reproduces_the_episodes(
   recorded, tmp_path
 ):
@@ -78,6 +79,7 @@ def test_replay_of_another_seed_or_task_is_refused_before_anything_is_built(
   assert built == []  # Nothing built, so nothing stepped (or moved).
 
 
+@pytest.mark.slow
 def test_another_seed_replays_when_allowed(recorded, tmp_path):
   evaluation.evaluate(evaluation.EvalConfig(
     *_TASK, 1, policy=f'replay:{recorded}', seed=_SEED + 1,
@@ -90,6 +92,7 @@ def test_another_seed_replays_when_allowed(recorded, tmp_path):
   )  # Another start: the same actions give another episode.
 
 
+@pytest.mark.slow
 def test_each_replayed_episode_is_checked_against_its_own_reset(tmp_path):
   # Two sessions from seed 0 in one directory: both episodes were reset
   # with seed 0, where a replay from 0 resets the second with seed 1.
@@ -122,6 +125,7 @@ def _record_directly(directory, metadata) -> str:
   return str(directory)
 
 
+@pytest.mark.slow
 def test_a_recording_that_does_not_say_replays(tmp_path):
   # Without a seed: any seed goes ahead.
   unsaid = _record_directly(tmp_path / 'a', {'domain': 'dclaw'})
@@ -135,6 +139,7 @@ def test_a_recording_that_does_not_say_replays(tmp_path):
     policies.ReplayPolicy(older, *_TASK, seed=7, check_seed=True)
 
 
+@pytest.mark.slow
 def test_a_cut_short_episode_is_refused_before_the_replay_starts(tmp_path):
   evaluation.evaluate(
     evaluation.EvalConfig(*_TASK, 1, policy='zero', seed=0, record=tmp_path)
@@ -217,8 +222,9 @@ def test_a_file_without_a_description_says_so(tmp_path):
     recording.describe_columns(path)
 
 
+@pytest.mark.slow
 def test_a_robot_recording_describes_its_motors(tmp_path):
-  pytest.importorskip('dynamixel_sdk')
+  pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
   env = suite.load(
     'dclaw', 'turn_fixed', seed=0, robot=suite.RobotOptions('virtual')
   )
@@ -254,6 +260,7 @@ def test_a_replay_is_not_split_over_workers(tmp_path):
     )
 
 
+@pytest.mark.slow
 def test_one_recorder_at_a_time_per_directory(tmp_path):
   # Two recorders would number their episodes alike and overwrite files.
   first = recording.Recorder(suite.load('dclaw', 'pose_fixed'), tmp_path)
@@ -266,6 +273,7 @@ def test_one_recorder_at_a_time_per_directory(tmp_path):
   second.close()
 
 
+@pytest.mark.slow
 def test_a_killed_recorder_leaves_the_directory_free(tmp_path):
   script = (
     'import os, signal\n'
@@ -280,6 +288,7 @@ def test_a_killed_recorder_leaves_the_directory_free(tmp_path):
   recording.Recorder(suite.load('dclaw', 'pose_fixed'), tmp_path).close()
 
 
+@pytest.mark.slow
 def test_recorders_starting_together_cannot_mix_tasks(tmp_path, monkeypatch):
   # B finds the directory empty; before B takes the lock, A (another task)
   # starts, records and closes. B must look again once it holds the lock.

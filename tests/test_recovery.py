@@ -12,14 +12,15 @@ faults fail.
 
 import numpy as np
 import pytest
-import test_robot_safety as safety
 
 from robel_dm import suite
 from robel_dm.hardware.dynamixel import client as dynamixel
 from robel_dm.hardware.dynamixel import control_table as table
 
 # Without the hardware extra these tests are skipped, not errors.
-sdk = pytest.importorskip('dynamixel_sdk')
+sdk = pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
+# Its fixtures and helpers need the extra too.
+import test_robot_safety as safety  # noqa: E402
 
 # test_robot_safety's fixtures, here too.
 lockstep = safety.lockstep
@@ -32,9 +33,10 @@ _UNANSWERED = 10**6  # Packets: for as long as the test runs.
 
 @pytest.fixture(
   params=[
-    ('dkitty', 'stand_fixed', None),
+    pytest.param(('dkitty', 'stand_fixed', None), marks=pytest.mark.slow),
     ('dclaw', 'turn_fixed', None),  # The scripted reset.
-    ('dclaw', 'turn_fixed', 'move'),  # Reads before it writes a goal.
+    # Reads before it writes a goal.
+    pytest.param(('dclaw', 'turn_fixed', 'move'), marks=pytest.mark.slow),
   ],
   ids=lambda task: '-'.join(filter(None, task)),
 )
@@ -124,6 +126,7 @@ def test_reset_brings_the_robot_back_after_lost_goal_writes(robot):
   _assert_runs_an_episode(robot)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
   'failure, motor_id, message',
   [

@@ -16,13 +16,14 @@ from robel_dm.hardware.tracking import tracker as tracking
 from robel_dm.hardware.virtual import sim_robot
 
 # extra.
-pytest.importorskip('dynamixel_sdk')
+pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
 
 
 def _torque(bus):
   return {servo.motor_id: servo.torque_enabled for servo in bus.servos}
 
 
+@pytest.mark.slow
 def test_scripted_claw_reset_turns_the_valve_and_releases_it():
   env = suite.load(
     'dclaw', 'turn_random', seed=3, robot=suite.RobotOptions('virtual')
@@ -47,6 +48,7 @@ def test_scripted_claw_reset_turns_the_valve_and_releases_it():
     env.close()
 
 
+@pytest.mark.slow
 def test_stuck_finger_retries_disentangles_then_fails_naming_it(monkeypatch):
   torque_seen = []
   original = sim_robot.SimulatedRobot.on_write
@@ -74,6 +76,7 @@ def test_stuck_finger_retries_disentangles_then_fails_naming_it(monkeypatch):
     env.close()
 
 
+@pytest.mark.slow
 def test_manual_reset_releases_the_motors_while_the_person_works():
   seen = []
 
@@ -114,6 +117,7 @@ def _guide_ticks(angle):
   return round(guide.to_motor(angle) / table.RADIANS_PER_TICK)
 
 
+@pytest.mark.slow
 def test_guide_motor_shows_the_moving_goal():
   env = suite.load(
     'dclaw',
@@ -136,6 +140,7 @@ def test_guide_motor_shows_the_moving_goal():
     env.close()
 
 
+@pytest.mark.slow
 def test_interactive_mode_takes_the_goal_from_the_guide():
   env = suite.load(
     'dclaw',
@@ -177,6 +182,7 @@ def test_unknown_guide_mode_is_rejected():
     )
 
 
+@pytest.mark.slow
 def test_dkitty_stand_up_sequence_runs_and_ends_upright(monkeypatch):
   after_stand_up = []
   original = resets.DKittyScriptedReset._stand_up
@@ -221,6 +227,7 @@ def test_dkitty_stand_up_sequence_runs_and_ends_upright(monkeypatch):
     env.close()
 
 
+@pytest.mark.slow
 def test_dkitty_that_cannot_get_up_fails_clearly_and_is_released():
   env = suite.load(
     'dkitty',
@@ -250,6 +257,7 @@ def test_dkitty_that_cannot_get_up_fails_clearly_and_is_released():
     env.close()
 
 
+@pytest.mark.slow
 def test_tracker_gives_the_torso_calibrates_at_reset_and_moves_the_target():
   holder = {'now': 0.0}
 
@@ -301,6 +309,7 @@ def _knock_over(env) -> None:
   simulation.advance(1.0)
 
 
+@pytest.mark.slow
 def test_a_fallen_virtual_dkitty_is_stood_up_by_the_simulated_person():
   env = suite.load(
     'dkitty',
@@ -323,6 +332,7 @@ def test_a_fallen_virtual_dkitty_is_stood_up_by_the_simulated_person():
     env.close()
 
 
+@pytest.mark.slow
 def test_dkitty_manual_reset_waits_until_the_robot_is_stood_up():
   env = suite.load(
     'dkitty',

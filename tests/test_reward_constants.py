@@ -24,6 +24,7 @@ def _summed_terms(domain, task, **task_kwargs):
   return totals
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('domain, task', suite.ALL_TASKS)
 def test_every_task_runs_with_robels_constants_by_default(domain, task):
   env = suite.load(domain, task, seed=0)
@@ -31,6 +32,7 @@ def test_every_task_runs_with_robels_constants_by_default(domain, task):
   env.close()
 
 
+@pytest.mark.slow
 def test_a_weight_given_as_a_mapping_changes_its_term_only():
   # Pose's rate limit keeps joints under ROBEL's pi rad/s: count slower ones.
   slow = {'fast_joint_speed': 0.5}

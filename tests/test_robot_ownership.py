@@ -21,7 +21,6 @@ import time
 import child_signals
 import numpy as np
 import pytest
-import test_robot_safety as safety
 
 from robel_dm.hardware import config as config_lib
 from robel_dm.hardware.dynamixel import client as dynamixel
@@ -30,7 +29,9 @@ from robel_dm.hardware.dynamixel import protocol
 from robel_dm.hardware.dynamixel.protocol import Instruction
 
 # Without the hardware extra these tests are skipped, not errors.
-sdk = pytest.importorskip('dynamixel_sdk')
+sdk = pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
+# Its fixtures and helpers need the extra too.
+import test_robot_safety as safety  # noqa: E402
 
 claw = safety.claw
 standalone_bus = safety.standalone_bus
@@ -172,6 +173,7 @@ pool.join()
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('scenario', list(_SCENARIOS))
 def test_a_forked_child_leaves_its_parents_robot_alone(
   standalone_bus, scenario
@@ -249,6 +251,7 @@ print(json.dumps({'owner': os.getpid(), 'outcomes': outcomes,
 """
 
 
+@pytest.mark.slow
 def test_a_forked_child_sends_nothing_to_its_parents_bus():
   # In-process: the child shares the parent's pty and bus thread, so
   # anything it sent would reach the parent's motors. In a fresh
@@ -282,6 +285,7 @@ def test_a_forked_child_sends_nothing_to_its_parents_bus():
 # --- Released by someone else -------------------------------------------------
 
 
+@pytest.mark.slow
 def test_a_robot_released_by_someone_else_stops_on_the_next_step(claw):
   env, bus = claw, claw.virtual_bus
   env.step(np.zeros(9))
@@ -333,6 +337,7 @@ def _broadcast_torque_off() -> bytes:
   )
 
 
+@pytest.mark.slow
 def test_a_robot_released_by_another_program_stops_the_next_step(
   standalone_bus,
 ):
@@ -385,6 +390,7 @@ worker.start()
 """
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
   'main_thread',
   ['while worker.is_alive():\n  time.sleep(0.1)', 'signal.pause()'],

@@ -27,7 +27,7 @@ from robel_dm.hardware.dynamixel import control_table as table
 from robel_dm.hardware.dynamixel.protocol import Instruction
 
 # Without the hardware extra these tests are skipped, not errors.
-sdk = pytest.importorskip('dynamixel_sdk')
+sdk = pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
 port_handler = sdk.port_handler
 
 _CLAW_IDS = [m.id for m in config_lib.default('dclaw').joints]
@@ -222,6 +222,7 @@ def _torque_on_after(child: subprocess.Popen, device_path: str) -> list[int]:
 # --- Ends of a session --------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_garbage_collected_environment_releases_its_motors(standalone_bus):
   device_path, _ = standalone_bus
   child = _child(
@@ -252,6 +253,7 @@ def test_garbage_collected_environment_releases_its_motors(standalone_bus):
   )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('signum', [signal.SIGHUP, signal.SIGQUIT])
 def test_hangup_and_quit_release_the_motors(standalone_bus, signum):
   device_path, _ = standalone_bus
@@ -263,6 +265,7 @@ def test_hangup_and_quit_release_the_motors(standalone_bus, signum):
   assert child.returncode == 128 + signum
 
 
+@pytest.mark.slow
 def test_a_burst_of_ctrl_c_cannot_interrupt_the_release(standalone_bus):
   # Ctrl-C every 2 ms until the program has exited: every release it
   # attempts (on the error, at close, at exit) is hit by signals.
@@ -278,6 +281,7 @@ def test_a_burst_of_ctrl_c_cannot_interrupt_the_release(standalone_bus):
     assert _torque_on_after(child, device_path) == []
 
 
+@pytest.mark.slow
 def test_every_robot_is_released_whatever_another_release_raises(monkeypatch):
   first = suite.load(
     'dclaw', 'pose_fixed', seed=0, robot=suite.RobotOptions('virtual')
@@ -304,6 +308,7 @@ def test_every_robot_is_released_whatever_another_release_raises(monkeypatch):
 # --- Faults -------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_after_a_fault_the_environment_refuses_to_step_until_reset(
   lockstep, short_timeouts, claw
 ):
@@ -321,6 +326,7 @@ def test_after_a_fault_the_environment_refuses_to_step_until_reset(
   assert all(bus.servo(i).torque_enabled for i in _CLAW_IDS)
 
 
+@pytest.mark.slow
 def test_over_current_stops_the_episode_naming_motor_and_current():
   env = suite.load(
     'dkitty', 'stand_fixed', seed=0, robot=suite.RobotOptions('virtual')
@@ -342,6 +348,7 @@ def test_over_current_stops_the_episode_naming_motor_and_current():
     env.close()
 
 
+@pytest.mark.slow
 def test_a_lost_goal_write_is_noticed_and_sent_again(caplog, claw):
   env, bus = claw, claw.virtual_bus
   env.step(np.full(9, 0.1))
@@ -367,6 +374,7 @@ def test_goal_writes_lost_twice_in_a_row_stop_with_an_error(claw):
 # --- Errors name what failed --------------------------------------------------
 
 
+@pytest.mark.slow
 def test_corrupted_replies_blame_the_motor_that_sent_them(
   lockstep, short_timeouts, claw
 ):
@@ -383,6 +391,7 @@ def test_corrupted_replies_blame_the_motor_that_sent_them(
   assert not bus.faults.corrupt_crc
 
 
+@pytest.mark.slow
 def test_a_late_reply_is_not_taken_for_a_motors_state(claw, monkeypatch):
   # A ping that timed out can be answered late; its reply then waits in the
   # port and the next state read takes it for motor 10's (3 bytes, not 20).
@@ -414,6 +423,7 @@ def test_a_late_reply_is_not_taken_for_a_motors_state(claw, monkeypatch):
   claw.step(np.zeros(9))
 
 
+@pytest.mark.slow
 def test_a_motor_with_a_bad_checksum_is_not_called_silent(
   lockstep, short_timeouts, claw
 ):
@@ -425,6 +435,7 @@ def test_a_motor_with_a_bad_checksum_is_not_called_silent(
   assert 'stopped answering' not in str(error.value)
 
 
+@pytest.mark.slow
 def test_a_silent_bus_is_named_as_such_after_one_ping_per_motor(claw):
   env, bus = claw, claw.virtual_bus
   env.step(np.zeros(9))
@@ -445,6 +456,7 @@ def test_a_silent_bus_is_named_as_such_after_one_ping_per_motor(claw):
 # --- One owner per bus --------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_a_second_environment_on_the_same_port_is_refused():
   env = suite.load(
     'dclaw', 'pose_fixed', seed=0, robot=suite.RobotOptions('virtual')
@@ -459,6 +471,7 @@ def test_a_second_environment_on_the_same_port_is_refused():
     env.close()
 
 
+@pytest.mark.slow
 def test_a_second_process_on_the_same_port_is_refused(standalone_bus):
   device_path, _ = standalone_bus
   child = _child(device_path, _STEP_FOREVER)
@@ -472,6 +485,7 @@ def test_a_second_process_on_the_same_port_is_refused(standalone_bus):
     child.wait(30)
 
 
+@pytest.mark.slow
 def test_a_vanished_port_is_named_and_the_command_line_says_so(standalone_bus):
   device_path, bus_process = standalone_bus
   evaluation = subprocess.Popen(
@@ -496,6 +510,7 @@ def test_a_vanished_port_is_named_and_the_command_line_says_so(standalone_bus):
 # --- Validation ---------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('time_limit', [float('nan'), 0.0, -1.0])
 def test_bad_time_limits_are_rejected(time_limit):
   with pytest.raises(ValueError, match='time_limit'):

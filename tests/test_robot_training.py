@@ -16,8 +16,8 @@ import time
 import numpy as np
 import pytest
 
-pytest.importorskip('sbx')
-pytest.importorskip('dynamixel_sdk')
+pytest.importorskip('sbx', reason='needs robel_dm[learn]')
+pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
 
 from robel_dm import recording, suite  # noqa: E402
 from robel_dm.learning import actor, learner, robot  # noqa: E402
@@ -90,6 +90,7 @@ def _count_random_actions(monkeypatch) -> list[int]:
   return steps
 
 
+@pytest.mark.slow
 def test_a_run_learns_on_the_bus_records_every_step_and_resumes(
   tmp_path, monkeypatch
 ):
@@ -153,6 +154,7 @@ def test_a_run_learns_on_the_bus_records_every_step_and_resumes(
   )
 
 
+@pytest.mark.slow
 def test_on_the_simulated_time_bus_the_robot_keeps_the_learners_pace(
   tmp_path,
 ):
@@ -170,6 +172,7 @@ def test_on_the_simulated_time_bus_the_robot_keeps_the_learners_pace(
     assert row['updates'] == (row['robot_steps'] - 500) // 8 * 8, row
 
 
+@pytest.mark.slow
 def test_a_fault_ends_the_episode_and_training_goes_on(tmp_path, monkeypatch):
   def lose_goals(env, n):
     if n == 100:  # In the second training episode.
@@ -195,6 +198,7 @@ def test_a_fault_ends_the_episode_and_training_goes_on(tmp_path, monkeypatch):
   assert _rows(tmp_path / robot.PROGRESS_LOG)[-1]['faults'] == 1
 
 
+@pytest.mark.slow
 def test_a_robot_that_cannot_be_reset_stops_the_run_saved(
   tmp_path, monkeypatch
 ):
@@ -213,6 +217,7 @@ def test_a_robot_that_cannot_be_reset_stops_the_run_saved(
   assert _recorded_steps(tmp_path / robot.RECORDING) >= 99
 
 
+@pytest.mark.slow
 def test_an_episode_ends_at_the_safety_threshold(tmp_path):
   options = robot.RobotRunOptions(_VIRTUAL_BUS, max_violations=50)
   config = CONFIG.__class__(**{**CONFIG.__dict__, 'steps': 300})
@@ -256,6 +261,7 @@ def _alive(pid: int) -> bool:
   return state != 'Z'
 
 
+@pytest.mark.slow
 def test_kill_9_loses_nothing_already_recorded_and_resume_goes_on(tmp_path):
   root = pathlib.Path(__file__).resolve().parents[1]
   process = subprocess.Popen(
@@ -291,6 +297,7 @@ def test_kill_9_loses_nothing_already_recorded_and_resume_goes_on(tmp_path):
   assert _recorded_steps(tmp_path / robot.RECORDING) >= recorded + 80
 
 
+@pytest.mark.slow
 def test_an_evaluation_cut_short_is_made_again_on_resume(tmp_path, monkeypatch):
   config = CONFIG.__class__(**{**CONFIG.__dict__, 'eval_every': 320})
   evaluate, calls = robot._RobotRun.evaluate, []
@@ -315,6 +322,7 @@ def test_an_evaluation_cut_short_is_made_again_on_resume(tmp_path, monkeypatch):
   assert [row['env_steps'] for row in history][:2] == [0, cut + 80]
 
 
+@pytest.mark.slow
 def test_sigterm_says_what_was_saved_and_how_to_resume(tmp_path):
   root = pathlib.Path(__file__).resolve().parents[1]
   output = tmp_path / 'run'
@@ -344,6 +352,7 @@ def test_sigterm_says_what_was_saved_and_how_to_resume(tmp_path):
   assert (output / train_lib.CHECKPOINT).is_file()
 
 
+@pytest.mark.slow
 def test_learning_starts_from_a_recording(tmp_path):
   # A recording made elsewhere (here: the reference controller, simulated).
   from robel_dm import evaluation  # noqa: PLC0415
@@ -399,6 +408,7 @@ def test_resuming_with_other_robot_options_is_refused(tmp_path):
     robot.train_on_robot(CONFIG, VIRTUAL, tmp_path, resume=True)
 
 
+@pytest.mark.slow
 def test_the_command_line_refuses_robot_flags_without_a_robot(tmp_path):
   result = subprocess.run(
     [sys.executable, '-m', 'robel_dm.train', '--hours=1',
@@ -448,6 +458,7 @@ class _FakeLearner:
     pass
 
 
+@pytest.mark.slow
 def test_the_agent_learns_from_the_penalized_reward(tmp_path, monkeypatch):
   monkeypatch.setattr(learner, 'Learner', _FakeLearner)
   config = CONFIG.__class__(
@@ -480,6 +491,7 @@ def demonstrations(tmp_path_factory):
   return str(directory)
 
 
+@pytest.mark.slow
 def test_demonstrations_seed_the_replay_buffer_on_a_robot(
   tmp_path, monkeypatch, demonstrations
 ):
@@ -494,6 +506,7 @@ def test_demonstrations_seed_the_replay_buffer_on_a_robot(
   assert sum(len(batch) for batch in _FakeLearner.last.batches) >= 240
 
 
+@pytest.mark.slow
 def test_behaviour_cloning_uses_the_robot_to_evaluate(tmp_path, demonstrations):
   config = CONFIG.__class__(
     **{**CONFIG.__dict__, 'algo': 'bc', 'steps': 20,
@@ -508,6 +521,7 @@ def test_behaviour_cloning_uses_the_robot_to_evaluate(tmp_path, demonstrations):
   assert _recorded_steps(tmp_path / robot.RECORDING) == 80
 
 
+@pytest.mark.slow
 def test_a_robot_run_learns_with_the_robot_agent_unless_told(tmp_path):
   root = pathlib.Path(__file__).resolve().parents[1]
   base = [sys.executable, '-m', 'robel_dm.train', '--domain=dclaw',

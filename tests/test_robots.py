@@ -9,6 +9,7 @@ from robel_dm.hardware import config as config_lib
 _ROBOTS = sorted(robots.ROBOTS)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('name', _ROBOTS)
 def test_a_declared_robot_has_tasks_a_scene_a_camera_and_a_configuration(
   name,
@@ -34,7 +35,9 @@ def test_a_declared_robot_has_tasks_a_scene_a_camera_and_a_configuration(
 
 @pytest.mark.parametrize('name', _ROBOTS)
 def test_a_declared_robot_names_its_gymnasium_ids(name):
-  robel_gym = pytest.importorskip('robel_dm.learning.gym')
+  robel_gym = pytest.importorskip(
+    'robel_dm.learning.gym', reason='needs robel_dm[learn]'
+  )
   prefix = robots.ROBOTS[name].gym_prefix
   ids = [
     i for i, (domain, _, _) in robel_gym.env_ids().items() if domain == name

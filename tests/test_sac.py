@@ -1,13 +1,17 @@
 """The default agent's SAC: sbx's updates, acting and replay in numpy."""
 
-import gymnasium
 import numpy as np
 import pytest
 
-pytest.importorskip('sbx')
+gymnasium = pytest.importorskip('gymnasium', reason='needs robel_dm[learn]')
+pytest.importorskip('sbx', reason='needs robel_dm[learn]')
 
 from robel_dm.learning import actor, agents  # noqa: E402
 from robel_dm.learning import sac as sac_lib  # noqa: E402
+
+# Every test builds sbx models (the quick tier, -m 'not slow', leaves them
+# out).
+pytestmark = pytest.mark.slow
 
 
 class _Random(gymnasium.Env):

@@ -1,11 +1,11 @@
 """Learning under a safety budget: SAC with a Lagrange multiplier on
 ROBEL's violations (robel_dm.learning.sac.SafetyConstraint)."""
 
-import gymnasium
 import numpy as np
 import pytest
 
-pytest.importorskip('sbx')
+gymnasium = pytest.importorskip('gymnasium', reason='needs robel_dm[learn]')
+pytest.importorskip('sbx', reason='needs robel_dm[learn]')
 
 from robel_dm.learning import agents, safety  # noqa: E402
 from robel_dm.learning import sac as sac_lib  # noqa: E402
@@ -67,6 +67,7 @@ def test_the_multiplier_rises_over_budget_and_falls_under_it():
     safety.SafetyConstraint(budget=-1)
 
 
+@pytest.mark.slow
 def test_replayed_rewards_pay_the_current_multiplier_per_violation():
   model = _model()
   model.safety = safety.SafetyConstraint(budget=0, learning_rate=0.0)
@@ -83,6 +84,7 @@ def test_replayed_rewards_pay_the_current_multiplier_per_violation():
   assert set(np.round(sample.rewards, 6).tolist()) == expected
 
 
+@pytest.mark.slow
 def test_without_a_budget_rewards_are_the_tasks():
   model = _model()
   model.learn(40)

@@ -19,7 +19,7 @@ from robel_dm.hardware.dynamixel import control_table as table
 from robel_dm.hardware.dynamixel.protocol import Instruction
 
 # Without the hardware extra these tests are skipped, not errors.
-sdk = pytest.importorskip('dynamixel_sdk')
+sdk = pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
 port_handler = sdk.port_handler
 
 DCLAW = config_lib.default('dclaw')
@@ -113,6 +113,7 @@ def test_firmware_refusing_block_reads_is_read_item_by_item(monkeypatch):
   assert items[1].operating_mode == 1 and items[1].position == -5
 
 
+@pytest.mark.slow
 def test_command_line_exits_0_on_a_healthy_bus():
   with _serve() as (_, device):
     result = _main(f'--device={device}', '--robot=dclaw')
@@ -120,12 +121,14 @@ def test_command_line_exits_0_on_a_healthy_bus():
   assert 'OK: 11 motor(s) found' in result.stdout
 
 
+@pytest.mark.slow
 def test_command_line_exits_2_for_a_missing_device():
   result = _main('--device=/dev/robel-dm-no-such-port', '--robot=dclaw')
   assert result.returncode == 2
   assert 'cannot open /dev/robel-dm-no-such-port' in result.stderr
 
 
+@pytest.mark.slow
 def test_command_line_exits_2_for_usage_errors():
   result = _main('--device=/dev/null', '--robot=dclaw', '--robot_config=x')
   assert result.returncode == 2
@@ -151,6 +154,7 @@ def test_missing_optional_and_task_specific_motors():
   assert code == 0  # Warnings do not fail the scan.
 
 
+@pytest.mark.slow
 def test_no_motor_at_all_suggests_baud_and_all_ids():
   with _serve([]) as (_, device):
     code, output = _run(device)
@@ -159,6 +163,7 @@ def test_no_motor_at_all_suggests_baud_and_all_ids():
   assert '--all_ids' in output
 
 
+@pytest.mark.slow
 def test_wrong_baud_without_expectations_fails_naming_what_was_tried():
   # Nothing expected: every ID is pinged, and finding none is no success.
   with _serve() as (_, device):
@@ -172,6 +177,7 @@ def test_wrong_baud_without_expectations_fails_naming_what_was_tried():
   assert 'tried every ID 0-252' in result.stdout
 
 
+@pytest.mark.slow
 def test_wrong_baud_with_a_configuration_names_the_ids_tried():
   with _serve() as (_, device):
     code, output = _run(device, baud_rate=57_600)
@@ -181,6 +187,7 @@ def test_wrong_baud_with_a_configuration_names_the_ids_tried():
   assert '(57600: new motors)' not in output  # It was the rate tried.
 
 
+@pytest.mark.slow
 def test_empty_bus_at_robel_rate_points_to_the_factory_rate():
   with _serve([]) as (_, device):
     code, output = _run(device, robot_config=None)
@@ -189,6 +196,7 @@ def test_empty_bus_at_robel_rate_points_to_the_factory_rate():
   assert '(57600: new motors)' in output
 
 
+@pytest.mark.slow
 def test_wrong_operating_mode_is_flagged():
   with _serve() as (bus, device):
     bus.servo(11).set(table.OPERATING_MODE, 1)
@@ -220,6 +228,7 @@ def test_status_return_level_is_flagged():
   }
 
 
+@pytest.mark.slow
 def test_extra_unknown_motor_is_reported():
   unknown = virtual.VirtualServo(99, model_number=1200)
   with _serve(extra=[unknown]) as (_, device):
@@ -234,6 +243,7 @@ def test_extra_unknown_motor_is_reported():
   assert 99 not in [report.id for report in not_scanned]
 
 
+@pytest.mark.slow
 def test_expected_ids_without_a_configuration():
   with _serve([1, 2, 7]) as (_, device):
     code, output = _run(device, robot_config=None, ids=[1, 2, 3], all_ids=True)
@@ -303,6 +313,7 @@ def test_apply_without_answers_writes_nothing():
   assert code == 1
 
 
+@pytest.mark.slow
 def test_apply_leaves_motors_that_are_not_expected_alone():
   stranger = virtual.VirtualServo(99)
   stranger.set(table.OPERATING_MODE, 1)  # E.g. a wheel, on purpose.

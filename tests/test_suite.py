@@ -63,11 +63,14 @@ class _ConformanceTest(test_utils.EnvironmentTestMixin, absltest.TestCase):
     self.assertIs(types[last + 1], dm_env.StepType.FIRST)
 
 
+# The quick tier (`-m "not slow"`) checks one task of each domain.
+_QUICK_CONFORMANCE = {('dclaw', 'pose_fixed'), ('dkitty', 'orient_fixed')}
 for _domain, _task in suite.ALL_TASKS:
   _name = f'TestConformance_{_domain}_{_task}'
-  globals()[_name] = type(
-    _name, (_ConformanceTest,), {'TASK_ID': (_domain, _task)}
-  )
+  _class = type(_name, (_ConformanceTest,), {'TASK_ID': (_domain, _task)})
+  if (_domain, _task) not in _QUICK_CONFORMANCE:
+    _class = pytest.mark.slow(_class)
+  globals()[_name] = _class
 del _ConformanceTest  # Abstract: keep pytest from collecting it.
 
 
@@ -150,6 +153,7 @@ def _run_to_the_time_limit(env, policy, timestep, attempts=10):
   pytest.fail(f'{attempts} episodes in a row ended in a fall')
 
 
+@pytest.mark.slow
 def test_episode_length_and_timesteps_are_robels(task_id):
   episode_steps, control_timestep = _ROBEL_TIMING[_family(task_id)]
   env = suite.load(*task_id, seed=0)
@@ -191,6 +195,7 @@ def test_time_limit_argument_overrides_the_episode_length(task):
   assert _run_to_the_time_limit(env, policy, first) == 10
 
 
+@pytest.mark.slow
 def test_time_limit_of_whole_control_steps_gives_that_many_steps(task_id):
   # ROBEL's own episode length in seconds must give ROBEL's step count,
   # even though the accumulated physics time carries rounding error.
@@ -202,6 +207,7 @@ def test_time_limit_of_whole_control_steps_gives_that_many_steps(task_id):
   assert _run_to_the_time_limit(env, policy, first) == episode_steps
 
 
+@pytest.mark.slow
 def test_discount_is_one_during_and_at_the_end_of_episodes(fixed_task_id):
   # The fixed tasks' steady policy never makes the D'Kitty fall.
   env = suite.load(*fixed_task_id, seed=0)
@@ -244,6 +250,7 @@ def test_a_task_of_the_other_domain_is_named_as_such():
   assert 'screw' not in str(info.value)  # No misleading suggestion.
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
   'task', _ONE_TASK_PER_DOMAIN, ids=robel_spec.ids(_ONE_TASK_PER_DOMAIN)
 )
@@ -252,6 +259,7 @@ def test_unknown_task_keyword_raises_value_error(task):
     suite.load(*task, task_kwargs={'bogus_keyword': 1})
 
 
+@pytest.mark.slow
 def test_unknown_valve_raises_value_error():
   with pytest.raises(ValueError, match="'valve5'"):
     suite.load('dclaw', 'turn_fixed', task_kwargs={'valve': 'valve5'})
@@ -260,6 +268,7 @@ def test_unknown_valve_raises_value_error():
     suite.load('dkitty', 'walk_fixed', task_kwargs={'valve': 'valve3'})
 
 
+@pytest.mark.slow
 def test_unknown_observation_key_raises_value_error(task_id):
   with pytest.raises(ValueError, match='not_an_observation'):
     suite.load(
@@ -275,6 +284,7 @@ def test_unknown_action_bounds_mode_raises_value_error(task):
     suite.load(*task, task_kwargs={'action_bounds': 'wrap'})
 
 
+@pytest.mark.slow
 def test_positional_arguments_follow_dm_control_suite():
   env = suite.load(
     'dclaw',

@@ -60,9 +60,10 @@ def _record_excitation(directory, duration, device_path=None, dynamics=None):
     env.close()
 
 
+@pytest.mark.slow
 @needs_pyarrow
 def test_fit_recovers_a_virtual_robots_dynamics(tmp_path):
-  pytest.importorskip('dynamixel_sdk')
+  pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
   truth = _truth()
   # The virtual bus's simulation runs the changed robot; the excitation
   # goes out and the state comes back through dynamixel_sdk.
@@ -89,6 +90,7 @@ def test_fit_recovers_a_virtual_robots_dynamics(tmp_path):
   assert loaded.fit['rms_angle_error_after'] == result.rms_after.tolist()
 
 
+@pytest.mark.slow
 def test_a_calibration_sets_the_simulated_model(tmp_path):
   truth = _truth(delay=0.005)
   path = tmp_path / 'c.json'
@@ -126,6 +128,7 @@ def test_the_delay_holds_the_previous_targets():
   delayed.close()
 
 
+@pytest.mark.slow
 def test_no_delay_is_the_uncalibrated_simulation():
   plain = suite.load('dclaw', 'pose_random', seed=4)
   zero = calibration.Calibration('dclaw', {'FFJ10': {'kp': 2.0}})
@@ -198,6 +201,7 @@ def test_excitation_targets_stay_in_range_and_move_chosen_joints():
   env.close()
 
 
+@pytest.mark.slow
 @needs_pyarrow
 def test_command_line_excites_and_fits_in_simulation(tmp_path):
   record, output = tmp_path / 'rec', tmp_path / 'cal.json'
@@ -230,6 +234,7 @@ def test_command_line_excites_and_fits_in_simulation(tmp_path):
   assert 'excites a dkitty, not a dclaw' in wrong.stderr
 
 
+@pytest.mark.slow
 @needs_pyarrow
 def test_command_line_errors_are_one_line(tmp_path):
   run = [sys.executable, '-m', 'robel_dm.sysid']

@@ -11,6 +11,9 @@ from robel_dm.sysid import __main__ as command
 from robel_dm.sysid import excite, fit
 from robel_dm.tasks import excitation
 
+# Every test fits (the quick tier, -m 'not slow', leaves them out).
+pytestmark = pytest.mark.slow
+
 PARAMETERS = ('kp', 'damping', 'frictionloss')
 SECONDS = 3.0
 # Measurement noise: AR(1) with this step-to-step correlation and these

@@ -49,6 +49,7 @@ def _action_map(task_id):
 # --- Observations ------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_agent_observation_is_robels_flat_layout(task_id, shared_env):
   family = robel_spec.family(task_id)
   layout = robel_spec.LAYOUTS[family]
@@ -78,6 +79,7 @@ def test_agent_observation_is_robels_flat_layout(task_id, shared_env):
   assert tuple(timestep.observation) == keys + _SIGNALS
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
   'task, keys',
   [
@@ -99,6 +101,7 @@ def test_custom_observation_keys_set_the_order(task, keys):
   np.testing.assert_array_equal(flat[joints:], _joints(env).qpos)
 
 
+@pytest.mark.slow
 def test_every_feature_and_the_reward_terms_can_be_observed(task_id):
   features = tuple(suite.load(*task_id).task.FEATURES)
   env = suite.load(*task_id, seed=0,
@@ -118,6 +121,7 @@ def test_every_feature_and_the_reward_terms_can_be_observed(task_id):
     assert terms.sum() == pytest.approx(timestep.reward, abs=1e-12)
 
 
+@pytest.mark.slow
 def test_signals_are_finite_and_typed_every_step(task_id, shared_env):
   env = shared_env(task_id)
   joints = env.action_spec().shape[0]
@@ -262,6 +266,7 @@ def test_bad_actions_raise_and_leave_ctrl_alone(task, kind, shared_env):
   np.testing.assert_array_equal(timestep.observation['last_action'], action)
 
 
+@pytest.mark.slow
 def test_actions_of_the_other_robot_are_rejected():
   for task, joints in ((('dclaw', 'turn_fixed'), 12),
                        (('dkitty', 'walk_fixed'), 9)):  # fmt: skip
@@ -295,6 +300,7 @@ def test_clip_mode_clips_out_of_range_actions_but_not_nan(task):
   np.testing.assert_array_equal(_ctrl(env), before)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
   'task', _ONE_TASK_PER_DOMAIN, ids=robel_spec.ids(_ONE_TASK_PER_DOMAIN)
 )

@@ -170,6 +170,7 @@ def test_reward_is_the_sum_of_robels_terms_on_real_steps(
     assert timestep.observation['score'] == pytest.approx(points, abs=1e-9)
 
 
+@pytest.mark.slow
 def test_pose_terms_on_hand_built_states():
   env = suite.load('dclaw', 'pose_fixed', seed=0)
   env.reset()
@@ -344,6 +345,7 @@ _POSE_RANDOM_TASKS = tuple(
 )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('pose_task_id', _POSE_RANDOM_TASKS,
                          ids=_ids(_POSE_RANDOM_TASKS))  # fmt: skip
 def test_random_pose_goal_oscillates_slowly_inside_the_pose_box(pose_task_id):
@@ -372,6 +374,7 @@ def test_random_pose_goal_oscillates_slowly_inside_the_pose_box(pose_task_id):
   assert not np.array_equal(starts[0], starts[1])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('pose_task_id', _POSE_RANDOM_TASKS,
                          ids=_ids(_POSE_RANDOM_TASKS))  # fmt: skip
 def test_random_pose_goal_has_one_frequency_per_joint(pose_task_id):
@@ -418,6 +421,7 @@ def test_fixed_valve_tasks_start_at_zero():
 # --- The 4-prong valve -------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('valve_task_id', _VALVE_TASKS, ids=_ids(_VALVE_TASKS))
 def test_valve4_runs_an_episode(valve_task_id):
   env = suite.load(*valve_task_id, seed=0, task_kwargs={'valve': 'valve4'})

@@ -51,6 +51,7 @@ _STAND_STATES = [
 ]
 
 
+@pytest.mark.slow
 def test_stand_terms_on_hand_built_states(kitty_envs):
   env = kitty_envs['stand']
   env.reset()
@@ -214,6 +215,7 @@ def _expected_from_physics(env, family):
   return walk_expected(upright, cosine, np.linalg.norm(to_target))
 
 
+@pytest.mark.slow
 def test_reward_is_the_sum_of_robels_terms_on_real_steps(dkitty_task_id):
   env = suite.load(*dkitty_task_id, seed=0)
   family = robel_spec.family(dkitty_task_id)

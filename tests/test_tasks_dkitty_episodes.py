@@ -27,6 +27,7 @@ import robel_spec
 from robel_dm import suite
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
   'family, rotation, falls',
   [
@@ -77,6 +78,7 @@ def test_falling_ends_the_episode_with_discount_zero(
   assert env.step(hold(env)).mid()
 
 
+@pytest.mark.slow
 def test_discount_is_zero_exactly_when_the_robot_has_fallen(dkitty_task_id):
   # Random bang-bang actions topple the D'Kitty in about half the episodes
   # (or more); only a fall gives discount 0.
@@ -143,6 +145,7 @@ def test_stand_random_starts_from_a_pose_in_the_action_ranges():
   assert np.all((poses.max(0) - poses.min(0)) > 0.5 * (high - low))
 
 
+@pytest.mark.slow
 def test_stand_reset_starts_from_the_initial_pose_and_settles():
   # The same draws with and without settling: without, the episode starts
   # exactly in the drawn pose, placed still at ROBEL's frame origin.
@@ -255,6 +258,7 @@ def test_walk_random_draws_robels_targets(task):
   assert _spread(angles, 2 * np.pi / 3) > 0.6
 
 
+@pytest.mark.slow
 def test_every_episode_starts_at_time_zero(dkitty_task_id, shared_env):
   env = shared_env(dkitty_task_id)
   timestep = env.reset()
@@ -273,6 +277,7 @@ def test_every_episode_starts_at_time_zero(dkitty_task_id, shared_env):
 # --- Terrain ------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_only_random_dynamics_variants_have_a_heightfield(dkitty_task_id):
   env = suite.load(*dkitty_task_id, seed=0)
   has_terrain = dkitty_task_id in suite.RANDOM_DYNAMICS
@@ -280,6 +285,7 @@ def test_only_random_dynamics_variants_have_a_heightfield(dkitty_task_id):
   assert env.task.arena.has_terrain == has_terrain
 
 
+@pytest.mark.slow
 def test_terrain_is_redrawn_every_episode_without_recompiling():
   env = suite.load('dkitty', 'walk_random_dynamics', seed=0)
   physics = env.physics  # A weak proxy: dead if the model were recompiled.
@@ -302,6 +308,7 @@ def test_terrain_is_redrawn_every_episode_without_recompiling():
     assert np.all(first != second)
 
 
+@pytest.mark.slow
 def test_terrain_reaches_an_existing_renderer(monkeypatch):
   env = suite.load('dkitty', 'walk_random_dynamics', seed=0)
   env.reset()
@@ -354,6 +361,7 @@ def test_robot_stands_still_on_flat_ground(family, kitty_envs):
   np.testing.assert_allclose(obs.observation['kitty_qpos'], 0.0, atol=0.02)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('seed', [0, 1, 2, 3])
 def test_robot_stands_on_random_terrain(seed):
   env = suite.load('dkitty', 'walk_random_dynamics', seed=seed)

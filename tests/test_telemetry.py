@@ -8,11 +8,16 @@ import sys
 
 import pytest
 
-pytest.importorskip('sbx')
-event_pb2 = pytest.importorskip('tensorboardX.proto.event_pb2')
+pytest.importorskip('sbx', reason='needs robel_dm[learn]')
+event_pb2 = pytest.importorskip(
+  'tensorboardX.proto.event_pb2', reason='needs robel_dm[learn]'
+)
 
 from robel_dm.learning import telemetry  # noqa: E402
 from robel_dm.learning import train as learning  # noqa: E402
+
+# Every test trains (the quick tier, -m 'not slow', leaves them out).
+pytestmark = pytest.mark.slow
 
 _CONFIG = learning.RunConfig(
   domain='dclaw', task='pose_fixed', steps=1000, eval_every=500,
@@ -92,7 +97,8 @@ def test_tensorboard_itself_reads_the_losses(run):
   # What `tensorboard --logdir` shows (the tensorboard extra): TensorBoard's
   # own reader, not the test's, finds the evaluations and the losses.
   accumulator = pytest.importorskip(
-    'tensorboard.backend.event_processing.event_accumulator'
+    'tensorboard.backend.event_processing.event_accumulator',
+    reason='needs robel_dm[tensorboard]',
   )
   output, history, _ = run
   (events,) = (output / 'tensorboard').glob('events.out.tfevents.*')

@@ -11,7 +11,8 @@ from robel_dm import evaluation, suite
 from robel_dm.hardware.tracking import natnet
 from robel_dm.hardware.tracking import spec as tracker_spec
 
-pytest.importorskip('dynamixel_sdk')  # The virtual bus.
+# The virtual bus.
+pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
 
 
 def test_specs_parse_with_defaults_and_reject_mistakes():
@@ -39,6 +40,7 @@ def _free_port() -> int:
     return probe.getsockname()[1]
 
 
+@pytest.mark.slow
 def test_the_tracker_flag_reaches_a_natnet_stream_over_loopback():
   data_port = _free_port()
   # Motive's side: a command socket, and frames of a standing torso

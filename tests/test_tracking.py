@@ -327,7 +327,7 @@ def _tracked_virtual_kitty(emit=None):
     emit: maps the simulated torso (position, quaternion) to what the
       tracker source reports; identity if None.
   """
-  pytest.importorskip('dynamixel_sdk')  # The hardware extra.
+  pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
   env = suite.load(
     'dkitty', 'stand_fixed', seed=0, robot=suite.RobotOptions('virtual')
   )
@@ -352,6 +352,7 @@ def _small_actions(env, steps):
   return np.clip(centre + rng.uniform(-0.1, 0.1, (steps, 12)), -1, 1)
 
 
+@pytest.mark.slow
 def test_tracker_reproduces_the_virtual_kittys_torso():
   env, simulation, source, now = _tracked_virtual_kitty()
   tracker = tr.TorsoTracker(source, 'torso', clock=now)
@@ -398,6 +399,7 @@ def test_tracker_reproduces_the_virtual_kittys_torso():
     env.close()
 
 
+@pytest.mark.slow
 def test_tracker_recovers_the_torso_through_a_y_up_frame_and_a_mount():
   # The torso as a y-up tracker sees it: the world turned by 1 rad and
   # shifted, the tracked body mounted rotated and offset on the torso.

@@ -11,8 +11,8 @@ import sys
 
 import pytest
 
-pytest.importorskip('stable_baselines3')
-pytest.importorskip('sbx')
+pytest.importorskip('stable_baselines3', reason='needs robel_dm[learn]')
+pytest.importorskip('sbx', reason='needs robel_dm[learn]')
 
 from robel_dm.learning import robot, run_files, telemetry  # noqa: E402
 from robel_dm.learning import train as learning  # noqa: E402
@@ -53,6 +53,7 @@ def old_run(tmp_path_factory):
   return output
 
 
+@pytest.mark.slow
 def test_training_again_without_resume_is_refused_and_leaves_the_run(
   old_run,
 ):
@@ -84,6 +85,7 @@ def test_absent_empty_or_unrelated_directories_are_fine(tmp_path):
   learning.check_output_dir(tmp_path, False, False)
 
 
+@pytest.mark.slow
 def test_overwrite_starts_over(old_run, tmp_path):
   output = tmp_path / 'run'
   shutil.copytree(old_run, output)
@@ -113,6 +115,7 @@ def test_overwrite_starts_over(old_run, tmp_path):
   assert (output / 'notes.txt').read_text() == 'mine'
 
 
+@pytest.mark.slow
 def test_resume_and_overwrite_together_are_refused(old_run, tmp_path):
   before = _files(old_run)
   for output in (old_run, tmp_path):
@@ -140,6 +143,7 @@ def test_clearing_removes_only_the_runs_files(tmp_path):
   assert not (tmp_path / robot.RECORDING).exists()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
   'flags, message',
   [

@@ -7,8 +7,8 @@ import pickle
 import numpy as np
 import pytest
 
-pytest.importorskip('stable_baselines3')
-pytest.importorskip('sbx')
+pytest.importorskip('stable_baselines3', reason='needs robel_dm[learn]')
+pytest.importorskip('sbx', reason='needs robel_dm[learn]')
 
 from robel_dm import evaluation, policies, provenance  # noqa: E402
 from robel_dm.learning import agents, demos  # noqa: E402
@@ -37,6 +37,7 @@ def trained_run(tmp_path_factory):
   return output, history
 
 
+@pytest.mark.slow
 def test_training_writes_every_artefact(trained_run):
   output, history = trained_run
   for name in ('checkpoint.zip', 'replay_buffer.pkl', 'env_state.pkl',
@@ -59,6 +60,7 @@ def test_training_writes_every_artefact(trained_run):
   assert config['algo'] == agents.DEFAULT == 'sac'
 
 
+@pytest.mark.slow
 def test_the_best_evaluated_policy_is_kept(tmp_path, monkeypatch):
   # Evaluations that rise then fall: the best file holds the second actor.
   scores = iter([0.1, 0.9, 0.2])
@@ -97,6 +99,7 @@ def test_evaluations_use_seeds_no_training_episode_uses(monkeypatch):
   assert not training_seeds & evaluation_seeds
 
 
+@pytest.mark.slow
 def test_a_run_builds_one_evaluation_environment(tmp_path, monkeypatch):
   # Three evaluations, one environment and one provenance read; the rows
   # equal those of evaluations that each build their own.
@@ -123,6 +126,7 @@ def test_a_run_builds_one_evaluation_environment(tmp_path, monkeypatch):
   assert alone == {key: history[-1][key] for key in alone}
 
 
+@pytest.mark.slow
 def test_evaluate_in_a_given_environment_equals_a_new_one():
   config = evaluation.EvalConfig('dkitty', 'walk_random_dynamics', 2, seed=7)
   alone = evaluation.evaluate(config)
@@ -141,6 +145,7 @@ def test_evaluate_in_a_given_environment_equals_a_new_one():
     evaluation.evaluate(dataclasses.replace(config, workers=2), env=env)
 
 
+@pytest.mark.slow
 def test_resume_continues_with_every_transition(trained_run):
   output, _ = trained_run
   before = pickle.loads((output / 'replay_buffer.pkl').read_bytes())
@@ -167,6 +172,7 @@ def test_resume_continues_with_every_transition(trained_run):
   assert not (same_key and resumed[0][2] == state[0][2])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
   'change',
   [
@@ -190,6 +196,7 @@ def test_resume_refuses_other_settings_and_leaves_the_run(trained_run, change):
     assert (output / name).read_bytes() == data, name
 
 
+@pytest.mark.slow
 def test_resume_refuses_another_valve(tmp_path):
   config = _config(task='turn_fixed', steps=16, eval_every=16)
   learning.train(config, tmp_path, **QUIET)
@@ -203,6 +210,7 @@ def test_resume_without_a_run_is_refused(tmp_path):
     learning.train(_config(), tmp_path, resume=True, **QUIET)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('algo', ['sac', 'sac_sb3', 'ppo', 'trpo'])
 def test_numpy_policy_equals_the_library_prediction(tmp_path, algo):
   config = _config(
@@ -221,6 +229,7 @@ def test_numpy_policy_equals_the_library_prediction(tmp_path, algo):
   assert numpy_policy.metadata['algo'] == algo
 
 
+@pytest.mark.slow
 def test_on_policy_runs_say_they_round_up_to_whole_rollouts(tmp_path):
   lines = []
   history = learning.train(
@@ -234,7 +243,7 @@ def test_on_policy_runs_say_they_round_up_to_whole_rollouts(tmp_path):
 
 @pytest.fixture(scope='module')
 def pose_demos(tmp_path_factory):
-  pytest.importorskip('pyarrow')
+  pytest.importorskip('pyarrow', reason='needs robel_dm[data]')
   directory = tmp_path_factory.mktemp('demos')
   evaluation.evaluate(
     evaluation.EvalConfig(
@@ -249,6 +258,7 @@ def pose_demos(tmp_path_factory):
   return directory
 
 
+@pytest.mark.slow
 def test_demonstrations_load_as_aligned_transitions(pose_demos):
   keys = learning.metadata_of(_config(task='pose_fixed'))['observation_keys']
   data = demos.load(pose_demos, 'dclaw', 'pose_fixed', tuple(keys))
@@ -267,6 +277,7 @@ def test_demonstrations_load_as_aligned_transitions(pose_demos):
     demos.load(pose_demos, 'dclaw', 'pose_fixed', tuple(keys), episodes=21)
 
 
+@pytest.mark.slow
 def test_behaviour_cloning_learns_the_reference_controller(
   pose_demos, tmp_path
 ):
@@ -286,6 +297,7 @@ def test_behaviour_cloning_learns_the_reference_controller(
   assert history[-1]['success_rate'] >= 0.8
 
 
+@pytest.mark.slow
 def test_demo_augmented_sac_keeps_the_demonstrations(pose_demos, tmp_path):
   config = _config(
     task='pose_fixed',
@@ -326,6 +338,7 @@ def test_every_agent_names_its_source_and_paper_kind():
   assert 'learning_rate' not in agents.AGENTS['sac_lr3e4'].hyperparameters
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('missing', ['sbx', 'stable_baselines3', 'jax'])
 def test_without_the_learn_extra_train_says_what_to_install(tmp_path, missing):
   import subprocess  # noqa: PLC0415
@@ -352,6 +365,7 @@ def test_without_the_learn_extra_train_says_what_to_install(tmp_path, missing):
   assert not output.exists()
 
 
+@pytest.mark.slow
 def test_resume_refuses_a_run_built_with_other_agent_settings(tmp_path):
   config = _config(steps=16, eval_every=16)
   learning.train(config, tmp_path, **QUIET)
@@ -380,6 +394,7 @@ def test_bad_budget_and_start_settings_are_named(changes, message):
     _config(**changes).check()
 
 
+@pytest.mark.slow
 def test_a_warm_start_begins_where_its_source_ended(tmp_path):
   source = tmp_path / 'source'
   history = learning.train(_config(steps=152, eval_every=152), source, **QUIET)
@@ -394,6 +409,7 @@ def test_a_warm_start_begins_where_its_source_ended(tmp_path):
   assert metadata['init_from'] == str(source)
 
 
+@pytest.mark.slow
 def test_a_safety_budget_learns_a_price_per_violation(tmp_path):
   config = _config(safety_penalty=0.0, safety_budget=0.0)
   learning.train(config, tmp_path / 'safe', **QUIET)

@@ -6,7 +6,9 @@ import pytest
 
 from robel_dm import policies, robots, suite, video
 
-imageio_ffmpeg = pytest.importorskip('imageio_ffmpeg')
+imageio_ffmpeg = pytest.importorskip(
+  'imageio_ffmpeg', reason='needs robel_dm[video]'
+)
 
 
 def _frames_in(path) -> int:
@@ -17,6 +19,7 @@ def _frames_in(path) -> int:
   return count
 
 
+@pytest.mark.slow
 def test_an_episode_becomes_a_video_with_a_frame_per_step(tmp_path):
   env = suite.load('dclaw', 'turn_fixed', seed=0)
   policy = policies.make_policy('zero', env, seed=0)
@@ -30,6 +33,7 @@ def test_an_episode_becomes_a_video_with_a_frame_per_step(tmp_path):
   env.close()
 
 
+@pytest.mark.slow
 def test_the_goal_marker_is_in_the_picture():
   # The turn task's goal marker is green: a fixed-goal frame has green
   # pixels, and hiding the marker removes them.
@@ -75,6 +79,7 @@ def kitty():
   env.close()
 
 
+@pytest.mark.slow
 def test_the_default_dkitty_camera_frames_the_robot(kitty):
   camera = robots.ROBOTS['dkitty'].default_camera
   robot = _geoms(kitty, _segmentation(kitty, camera), _is_kitty)
@@ -83,6 +88,7 @@ def test_the_default_dkitty_camera_frames_the_robot(kitty):
   assert robot.mean() > 0.015
 
 
+@pytest.mark.slow
 def test_the_robot_stands_out_from_the_floor_from_above(kitty):
   segmentation = _segmentation(kitty, 'tracking_top')
   robot = _geoms(kitty, segmentation, _is_kitty)
@@ -97,6 +103,7 @@ def _is_kitty(name):
   return name.startswith('dkitty/')
 
 
+@pytest.mark.slow
 def test_unknown_cameras_are_named():
   env = suite.load('dkitty', 'walk_fixed', seed=0)
   env.reset()
@@ -107,6 +114,7 @@ def test_unknown_cameras_are_named():
   env.close()
 
 
+@pytest.mark.slow
 def test_evaluate_writes_a_video_per_episode(tmp_path):
   from robel_dm import evaluation  # noqa: PLC0415
 
@@ -123,6 +131,7 @@ def test_evaluate_writes_a_video_per_episode(tmp_path):
     assert sum(1 for _ in reader) == record['steps'] + 1
 
 
+@pytest.mark.slow
 def test_cameras_answer_to_their_documented_names():
   # xml/README.md names the kitty's top camera `tracking_top`; the model
   # calls it `dkitty/tracking_top`.

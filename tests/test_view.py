@@ -24,6 +24,7 @@ def test_a_missing_display_is_explained():
   view.check_display({'MUJOCO_GL': 'glfw', 'DISPLAY': ':0'})  # Fine.
 
 
+@pytest.mark.slow
 def test_the_command_fails_with_one_clear_line_without_a_display():
   env = {k: v for k, v in os.environ.items() if k != 'DISPLAY'}
   env['MUJOCO_GL'] = 'egl'

@@ -17,8 +17,8 @@ from robel_dm.hardware.dynamixel import protocol
 from robel_dm.hardware.dynamixel.protocol import Error, Instruction
 from robel_dm.tools import virtual_bus
 
-sdk = pytest.importorskip('dynamixel_sdk')
-serial = pytest.importorskip('serial')
+sdk = pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
+serial = pytest.importorskip('serial', reason='needs robel_dm[hardware]')
 
 BAUD_RATE = 1_000_000
 # Examples from docs/dynamixel.md section 1.1 (taken from the e-manual).

@@ -22,14 +22,15 @@ import time
 import child_signals
 import numpy as np
 import pytest
-import test_robot_safety as safety
 
 from robel_dm.hardware import config as config_lib
 from robel_dm.hardware.dynamixel import client as dynamixel
 from robel_dm.hardware.dynamixel.protocol import Instruction
 
 # Without the hardware extra these tests are skipped, not errors.
-sdk = pytest.importorskip('dynamixel_sdk')
+sdk = pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
+# Its fixtures and helpers need the extra too.
+import test_robot_safety as safety  # noqa: E402
 
 lockstep = safety.lockstep
 claw = safety.claw
@@ -98,6 +99,7 @@ _SOAK_STEPS = 150
 _STALL_S = 5.0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('domain', ['dclaw', 'dkitty'])
 def test_a_random_fault_soak_never_stalls_a_step(domain, caplog, monkeypatch):
   # The benchmark's soak: steps with random faults (silence, corrupted
@@ -172,6 +174,7 @@ def _descheduled(process, seconds: float) -> threading.Thread:
   return thread
 
 
+@pytest.mark.slow
 def test_a_standalone_bus_late_on_a_busy_machine_is_waited_for(
   standalone_claw,
 ):

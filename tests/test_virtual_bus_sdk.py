@@ -25,8 +25,8 @@ from robel_dm.hardware.dynamixel import protocol
 from robel_dm.hardware.dynamixel.protocol import Error, Instruction
 from robel_dm.tools import virtual_bus
 
-sdk = pytest.importorskip('dynamixel_sdk')
-serial = pytest.importorskip('serial')
+sdk = pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
+serial = pytest.importorskip('serial', reason='needs robel_dm[hardware]')
 
 
 BAUD_RATE = 1_000_000
@@ -149,6 +149,7 @@ def test_ping_returns_model_number(chain):
   assert chain.servo(2).counters[Instruction.PING] == 1
 
 
+@pytest.mark.slow
 def test_broadcast_ping_finds_every_servo(open_chain):
   chain = open_chain([3, 1, 12])
   found, result = chain.packets.broadcastPing(chain.port)
@@ -449,6 +450,7 @@ def test_false_header_is_abandoned(chain):
   assert chain.server.stats['resyncs'] >= 1
 
 
+@pytest.mark.slow
 def test_server_is_idle_without_traffic_and_stops_cleanly():
   bus = virtual.Bus(virtual.make_servos([1]))
   server = virtual.PtyBusServer(bus).start()
@@ -470,6 +472,7 @@ def test_server_is_idle_without_traffic_and_stops_cleanly():
   assert not server.errors
 
 
+@pytest.mark.slow
 def test_command_line_serves_a_robot():
   process = subprocess.Popen(
     [sys.executable, '-m', 'robel_dm.tools.virtual_bus', '--robot=dclaw'],
@@ -497,6 +500,7 @@ def test_command_line_serves_a_robot():
   assert returncode == 0, process.stderr.read()
 
 
+@pytest.mark.slow
 def test_a_real_time_bus_answers_promptly_after_an_idle_spell(monkeypatch):
   """A read after minutes of silence simulates at most a second of them
   (the robot has settled), so the reply is not held past the deadline."""

@@ -5,7 +5,8 @@ import pytest
 
 from robel_dm import calibration, randomization, suite, zoo
 
-pytest.importorskip('dynamixel_sdk')  # The robots run on the virtual bus.
+# The robots run on the virtual bus.
+pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
 
 _RANDOM_DYNAMICS = {
   'dclaw': randomization.DCLAW_POSE,
@@ -79,6 +80,7 @@ def _sensing_error(robot_name: str) -> np.ndarray:
     env.close()
 
 
+@pytest.mark.slow
 def test_a_noisy_robot_reports_noisy_positions():
   half_tick = np.pi / 4096  # What rounding to ticks alone can add.
   assert np.abs(_sensing_error('claw_stiff')).max() <= half_tick + 1e-9

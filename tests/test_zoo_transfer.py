@@ -5,7 +5,8 @@ import shutil
 
 import pytest
 
-pytest.importorskip('dynamixel_sdk')  # The robots run on the virtual bus.
+# The robots run on the virtual bus.
+pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
 
 from robel_dm.zoo import transfer  # noqa: E402
 
@@ -15,6 +16,7 @@ def test_randomdynamics_policies_run_on_the_random_task():
   assert transfer.evaluated_task('walk_fixed') == 'walk_fixed'
 
 
+@pytest.mark.slow
 def test_a_transfer_record_is_made_merged_and_tabled(tmp_path, monkeypatch):
   monkeypatch.setitem(transfer.EPISODES, 'fixed', 1)
   (pairing,) = transfer.pairings('dclaw_pose_fixed/claw_noisy')

@@ -381,7 +381,8 @@ def main(argv: list[str]) -> int:
       )  # fmt: skip
       output.task_done(evaluation.evaluate(config))
     output.progress.close()
-  except (ValueError, RuntimeError) as error:
+  except (ValueError, RuntimeError, ImportError) as error:
+    # An ImportError names the extra to install (e.g. robel_dm[hardware]).
     print(f'error: {error}', file=sys.stderr)
     return 2
   except KeyboardInterrupt:

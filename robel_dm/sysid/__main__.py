@@ -180,9 +180,10 @@ def main(argv: list[str]) -> int:
         raise app.UsageError(f'unexpected arguments: {rest}')
       return excite()
     return fit(rest)
-  except (ValueError, RuntimeError) as error:
-    # Includes calibration, recording and robot errors; a robot's motors
-    # were released on the way out (see robel_dm.hardware.shutdown).
+  except (ValueError, RuntimeError, ImportError) as error:
+    # Includes calibration, recording and robot errors, and a missing extra
+    # (named); a robot's motors were released on the way out (see
+    # robel_dm.hardware.shutdown).
     print(f'error: {error}', file=sys.stderr)
     return 2
   except KeyboardInterrupt:
