@@ -47,18 +47,20 @@ SOLVED = training_speed.SOLVED
 
 def run(algo: str, task: str, seed: int, output: pathlib.Path) -> dict:
   from robel_dm import suite  # noqa: PLC0415
-  from robel_dm.learning import robot  # noqa: PLC0415
+  from robel_dm.learning import robot_training  # noqa: PLC0415
 
   domain, every, budget = TASKS[task]
   config = training_speed.until_solved(domain, task, algo, seed, every, budget)
   # A person stands a fallen D'Kitty back up (a plain move leaves it
   # fallen, and ROBEL's scripted stand-up does not right it from its back).
   reset = 'manual' if domain == 'dkitty' else None
-  options = robot.RobotRunOptions(suite.RobotOptions('virtual', reset=reset))
+  options = robot_training.RobotRunOptions(
+    suite.RobotOptions('virtual', reset=reset)
+  )
   directory = output / f'{task}_{algo}_seed{seed}'
   shutil.rmtree(directory, ignore_errors=True)
   start = time.perf_counter()
-  history = robot.train_on_robot(
+  history = robot_training.train_on_robot(
     config, options, directory, log=lambda line: None
   )
   solved = next((r for r in history if r['success_rate'] >= SOLVED), None)
@@ -79,13 +81,13 @@ def run(algo: str, task: str, seed: int, output: pathlib.Path) -> dict:
 
 def simulated(algo: str, task: str, seed: int, output: pathlib.Path) -> dict:
   """The same run in simulation: env steps, wall and CPU seconds to 80%."""
-  from robel_dm.learning import train  # noqa: PLC0415
+  from robel_dm.learning import training  # noqa: PLC0415
 
   domain, every, budget = TASKS[task]
   config = training_speed.until_solved(domain, task, algo, seed, every, budget)
   directory = output / f'{task}_{algo}_seed{seed}_simulation'
   shutil.rmtree(directory, ignore_errors=True)
-  last = train.train(config, directory, log=lambda line: None)[-1]
+  last = training.train(config, directory, log=lambda line: None)[-1]
   return {
     'sim_solved': last['success_rate'] >= SOLVED,
     'sim_env_steps': last['env_steps'],

@@ -34,10 +34,10 @@ def _violations(row: dict) -> float:
 
 
 def run(args, budget: float | None, seed: int) -> dict:
-  from robel_dm.learning import train  # noqa: PLC0415
+  from robel_dm.learning import training  # noqa: PLC0415
 
   domain, task = args.task.split('/')
-  config = train.RunConfig(
+  config = training.RunConfig(
     domain=domain,
     task=task,
     seed=seed,
@@ -50,7 +50,7 @@ def run(args, budget: float | None, seed: int) -> dict:
   directory = pathlib.Path(args.output) / name
   shutil.rmtree(directory, ignore_errors=True)
   start = time.process_time()
-  history = train.train(config, directory, log=lambda line: None)
+  history = training.train(config, directory, log=lambda line: None)
   last = history[-1]
   safe = [
     row

@@ -40,9 +40,9 @@ def until_solved(
 ):
   """A `train` run of a Fixed task that stops at its first evaluation with
   success >= 0.8 (one evaluation episode: every episode is the same)."""
-  from robel_dm.learning import train  # noqa: PLC0415
+  from robel_dm.learning import training  # noqa: PLC0415
 
-  return train.RunConfig(
+  return training.RunConfig(
     domain=domain,
     task=task,
     algo=algo,
@@ -56,16 +56,18 @@ def until_solved(
 
 def _run(task: str, seed: int, algo: str, output: str) -> dict:
   start = time.perf_counter()
-  from robel_dm.learning import train  # noqa: PLC0415
+  from robel_dm.learning import training  # noqa: PLC0415
 
   domain, every, budget = TASKS[task]
   config = until_solved(domain, task, algo, seed, every, budget)
   directory = pathlib.Path(output) / f'{task}_{algo}_seed{seed}'
-  resume = (directory / train.CONFIG).is_file()
-  history = train.curves.read_log(directory / train.EVAL_LOG) if resume else []
+  resume = (directory / training.CONFIG).is_file()
+  history = (
+    training.curves.read_log(directory / training.EVAL_LOG) if resume else []
+  )
   if not (history and (history[-1]['success_rate'] >= SOLVED
                        or history[-1]['env_steps'] >= budget)):  # fmt: skip
-    history = train.train(config, directory, resume=resume, log=print)
+    history = training.train(config, directory, resume=resume, log=print)
   last = history[-1]
   return {
     'task': task,

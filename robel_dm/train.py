@@ -1,4 +1,4 @@
-r"""Trains an agent on a robel_dm task (see `robel_dm.learning.train`).
+r"""Trains an agent on a robel_dm task (see `robel_dm.learning.training`).
 
     python -m robel_dm.train --domain=dclaw --task=pose_fixed --steps=30000 \
         --seed=0 --output_dir=runs/pose
@@ -101,7 +101,7 @@ def _define_learning_flags() -> None:
 
 
 def _define_robot_flags() -> None:
-  """Learning on a robot (robel_dm.learning.robot)."""
+  """Learning on a robot (robel_dm.learning.robot_training)."""
   flags.DEFINE_string(
     'device_path',
     None,
@@ -209,10 +209,10 @@ def _algo() -> str:
 
 
 def _run_config():
-  """The flags' `learning.train.RunConfig`."""
+  """The flags' `learning.training.RunConfig`."""
   from robel_dm.evaluation import task_args  # noqa: PLC0415
   from robel_dm.learning import run_config  # noqa: PLC0415
-  from robel_dm.learning import train as learning  # noqa: PLC0415
+  from robel_dm.learning import training as learning  # noqa: PLC0415
 
   return learning.RunConfig(
     domain=FLAGS.domain,
@@ -239,13 +239,13 @@ def _run_config():
 def _train_on_robot(config, robot_options, log) -> None:
   """Learns `config`'s task on the robot of `robot_options` (the flags'
   `suite.RobotOptions`), in real time."""
-  from robel_dm.learning import robot  # noqa: PLC0415
+  from robel_dm.learning import robot_training  # noqa: PLC0415
 
-  options = robot.RobotRunOptions(
+  options = robot_training.RobotRunOptions(
     robot_options,
     **{name: FLAGS[name].value for name in _ROBOT_RUN_FLAGS},
   )
-  robot.train_on_robot(
+  robot_training.train_on_robot(
     config,
     options,
     FLAGS.output_dir,
@@ -257,7 +257,7 @@ def _train_on_robot(config, robot_options, log) -> None:
 
 def _train_in_simulation(config, log) -> None:
   """Learns `config`'s task in simulation; refuses the robot-only flags."""
-  from robel_dm.learning import train as learning  # noqa: PLC0415
+  from robel_dm.learning import training as learning  # noqa: PLC0415
 
   given = [name for name in _ROBOT_RUN_FLAGS if FLAGS[name].present]
   if given:

@@ -12,7 +12,7 @@ pytest.importorskip('sbx', reason='needs robel_dm[learn]')
 
 from robel_dm import suite  # noqa: E402
 from robel_dm.evaluation import task_args  # noqa: E402
-from robel_dm.learning import agents, baselines, train  # noqa: E402
+from robel_dm.learning import agents, baselines, training  # noqa: E402
 from robel_dm.learning.baselines import (  # noqa: E402
   cli,
   demonstrations,
@@ -87,12 +87,12 @@ def test_the_table_stops_a_run_once_it_is_solved():
 def test_a_run_stops_after_a_streak_of_solved_evaluations(
   tmp_path, rates, streak, stops
 ):
-  from robel_dm.learning import train  # noqa: PLC0415
+  from robel_dm.learning import training  # noqa: PLC0415
 
-  config = train.RunConfig(
+  config = training.RunConfig(
     'dclaw', 'pose_random', stop_at_success=0.8, stop_streak=streak
   )
-  run = train.Run(tmp_path, config, log=lambda line: None)
+  run = training.Run(tmp_path, config, log=lambda line: None)
   run.history = [{'success_rate': rate} for rate in rates]
   assert run.solved(run.history[-1]) == stops
 
@@ -165,15 +165,15 @@ def _lucky_run(monkeypatch, rising: bool):
   every training evaluation reads success 1.0 (a lucky streak); with
   `rising`, each one's mean score beats the last, so each is the new best
   policy, else the first stays the best. Returns (run, record, log lines)."""
-  from robel_dm.learning import train  # noqa: PLC0415
+  from robel_dm.learning import training  # noqa: PLC0415
 
-  real, count = train.evaluate_policy, itertools.count()
+  real, count = training.evaluate_policy, itertools.count()
 
   def lucky(*args, **kwargs):
     score = float(next(count)) if rising else 0.5
     return real(*args, **kwargs) | {'success_rate': 1.0, 'mean_score': score}
 
-  monkeypatch.setattr(train, 'evaluate_policy', lucky)
+  monkeypatch.setattr(training, 'evaluate_policy', lucky)
   baselines.PLAN['tasks']['dclaw/pose_random'] = {'steps': 32, 'eval_every': 8}
   run = baselines.Run('dclaw', 'pose_random', 'sac', 0)
   lines = []
@@ -498,7 +498,7 @@ def test_list_prices_the_steps_left_at_the_same_task_and_robot(sandbox, capsys):
   # Half done at 24 ms per step: the other half at that run's own rate.
   run = baselines.Run('dclaw', 'pose_random', 'sac', 0)
   run.directory.mkdir(parents=True)
-  (run.directory / train.EVAL_LOG).write_text(
+  (run.directory / training.EVAL_LOG).write_text(
     json.dumps({
       'env_steps': 300_000, 'wall_time': 7_200.0, 'cpu_time': 7_200.0,
       'eval_time': 0.0, 'success_rate': 0.0, 'mean_score': 0.0,

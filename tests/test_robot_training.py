@@ -20,8 +20,8 @@ pytest.importorskip('sbx', reason='needs robel_dm[learn]')
 pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
 
 from robel_dm import recording, suite  # noqa: E402
-from robel_dm.learning import actor, learner, robot  # noqa: E402
-from robel_dm.learning import train as train_lib  # noqa: E402
+from robel_dm.learning import actor, learner, robot_training  # noqa: E402
+from robel_dm.learning import training as train_lib  # noqa: E402
 from tests import child_signals, test_telemetry  # noqa: E402
 
 # Pose runs 80 steps per episode; learning starts at 500 steps.
@@ -30,7 +30,7 @@ CONFIG = train_lib.RunConfig(
   eval_episodes=1,
 )  # fmt: skip
 _VIRTUAL_BUS = suite.RobotOptions('virtual')
-VIRTUAL = robot.RobotRunOptions(_VIRTUAL_BUS)
+VIRTUAL = robot_training.RobotRunOptions(_VIRTUAL_BUS)
 
 
 def _rows(path: pathlib.Path) -> list[dict]:
@@ -44,7 +44,7 @@ def _recorded_steps(directory: pathlib.Path) -> int:
 def _inject(monkeypatch, on_step) -> list:
   """Calls `on_step(env, n)` before every robot step n of the run."""
   envs = []
-  load = robot.RobotRunOptions.load
+  load = robot_training.RobotRunOptions.load
 
   def load_and_watch(options, config, seed):
     env = load(options, config, seed)
@@ -59,7 +59,7 @@ def _inject(monkeypatch, on_step) -> list:
     envs.append(env)
     return env
 
-  monkeypatch.setattr(robot.RobotRunOptions, 'load', load_and_watch)
+  monkeypatch.setattr(robot_training.RobotRunOptions, 'load', load_and_watch)
   return envs
 
 
@@ -67,7 +67,7 @@ def _count_random_actions(monkeypatch) -> list[int]:
   """The robot steps at which a run past its learning start draws a
   random action (it should act with its actor)."""
   steps = []
-  episode = robot._RobotRun.episode
+  episode = robot_training._RobotRun.episode
 
   class Watched:
     def __init__(self, rng, run):
@@ -86,7 +86,7 @@ def _count_random_actions(monkeypatch) -> list[int]:
       run.rng = Watched(run.rng, run)
     return episode(run, purpose, policy)
 
-  monkeypatch.setattr(robot._RobotRun, 'episode', watched)
+  monkeypatch.setattr(robot_training._RobotRun, 'episode', watched)
   return steps
 
 
@@ -95,17 +95,19 @@ def test_a_run_learns_on_the_bus_records_every_step_and_resumes(
   tmp_path, monkeypatch
 ):
   lines = []
-  history = robot.train_on_robot(CONFIG, VIRTUAL, tmp_path, log=lines.append)
+  history = robot_training.train_on_robot(
+    CONFIG, VIRTUAL, tmp_path, log=lines.append
+  )
   # Evaluated on the robot before learning and at the end.
   assert [row['env_steps'] for row in history][0] == 0
   assert all(row['on_robot'] for row in history)
   assert history[-1]['env_steps'] >= CONFIG.steps
-  progress = _rows(tmp_path / robot.PROGRESS_LOG)
+  progress = _rows(tmp_path / robot_training.PROGRESS_LOG)
   steps = progress[-1]['robot_steps']
   assert steps >= CONFIG.steps
   # Every step is in the recording, training and evaluation episodes alike.
-  assert _recorded_steps(tmp_path / robot.RECORDING) == steps
-  episodes = recording.read(tmp_path / robot.RECORDING)
+  assert _recorded_steps(tmp_path / robot_training.RECORDING) == steps
+  episodes = recording.read(tmp_path / robot_training.RECORDING)
   purposes = {e.metadata['purpose'] for e in episodes}
   assert purposes == {'training', 'evaluation'}
   # The learner made one update per transition after the first 500 (it
@@ -133,7 +135,7 @@ def test_a_run_learns_on_the_bus_records_every_step_and_resumes(
   # acting with the restored actor from its first step (never with the
   # random actions of a run that has not started learning).
   random_steps = _count_random_actions(monkeypatch)
-  more = robot.train_on_robot(
+  more = robot_training.train_on_robot(
     CONFIG.__class__(**{**CONFIG.__dict__, 'steps': steps + 160}),
     VIRTUAL,
     tmp_path,
@@ -149,8 +151,8 @@ def test_a_run_learns_on_the_bus_records_every_step_and_resumes(
   assert more[-1]['robot_seconds'] >= before + 160 * 0.05
   assert more[-1]['env_steps'] >= steps + 160
   assert (
-    _recorded_steps(tmp_path / robot.RECORDING)
-    == _rows(tmp_path / robot.PROGRESS_LOG)[-1]['robot_steps']
+    _recorded_steps(tmp_path / robot_training.RECORDING)
+    == _rows(tmp_path / robot_training.PROGRESS_LOG)[-1]['robot_steps']
   )
 
 
@@ -164,8 +166,10 @@ def test_on_the_simulated_time_bus_the_robot_keeps_the_learners_pace(
   # learner has made all the updates the steps allow (one per step, in
   # chunks of 8).
   assert VIRTUAL.paced_by_learner
-  robot.train_on_robot(CONFIG, VIRTUAL, tmp_path, log=lambda line: None)
-  rows = _rows(tmp_path / robot.PROGRESS_LOG)
+  robot_training.train_on_robot(
+    CONFIG, VIRTUAL, tmp_path, log=lambda line: None
+  )
+  rows = _rows(tmp_path / robot_training.PROGRESS_LOG)
   late = [row for row in rows if row['robot_steps'] > 600]
   assert late
   for row in late:
@@ -181,21 +185,23 @@ def test_a_fault_ends_the_episode_and_training_goes_on(tmp_path, monkeypatch):
   _inject(monkeypatch, lose_goals)
   config = CONFIG.__class__(**{**CONFIG.__dict__, 'steps': 400})
   lines = []
-  robot.train_on_robot(config, VIRTUAL, tmp_path, log=lines.append)
-  progress = _rows(tmp_path / robot.PROGRESS_LOG)
+  robot_training.train_on_robot(config, VIRTUAL, tmp_path, log=lines.append)
+  progress = _rows(tmp_path / robot_training.PROGRESS_LOG)
   faulted = [row for row in progress if row['ended'].startswith('fault')]
   assert len(faulted) == 1 and 'motors [12]' in faulted[0]['ended']
   assert progress[-1]['faults'] == 1
   # Training went on after the fault, up to its budget.
   assert progress.index(faulted[0]) < len(progress) - 1
   assert progress[-1]['robot_steps'] >= 400
-  episodes = recording.read(tmp_path / robot.RECORDING)
+  episodes = recording.read(tmp_path / robot_training.RECORDING)
   assert [e.metadata['complete'] for e in episodes].count(False) == 1
   assert any('hardware fault' in line for line in lines)
   # A resumed run goes on counting (the fault is not forgotten).
   more = CONFIG.__class__(**{**config.__dict__, 'steps': 480})
-  robot.train_on_robot(more, VIRTUAL, tmp_path, resume=True, log=lines.append)
-  assert _rows(tmp_path / robot.PROGRESS_LOG)[-1]['faults'] == 1
+  robot_training.train_on_robot(
+    more, VIRTUAL, tmp_path, resume=True, log=lines.append
+  )
+  assert _rows(tmp_path / robot_training.PROGRESS_LOG)[-1]['faults'] == 1
 
 
 @pytest.mark.slow
@@ -207,22 +213,26 @@ def test_a_robot_that_cannot_be_reset_stops_the_run_saved(
       env.virtual_bus.faults.set_absent(21)
 
   envs = _inject(monkeypatch, unplug)
-  options = robot.RobotRunOptions(_VIRTUAL_BUS, reset_attempts=2)
+  options = robot_training.RobotRunOptions(_VIRTUAL_BUS, reset_attempts=2)
   with pytest.raises(RuntimeError, match='could not be reset 2 times'):
-    robot.train_on_robot(CONFIG, options, tmp_path, log=lambda line: None)
+    robot_training.train_on_robot(
+      CONFIG, options, tmp_path, log=lambda line: None
+    )
   # Every motor that answers is released (the unplugged one cannot hear).
   servos = envs[0].virtual_bus.servos
   assert not any(s.torque_enabled for s in servos if s.motor_id != 21)
   assert (tmp_path / train_lib.CHECKPOINT).is_file()
-  assert _recorded_steps(tmp_path / robot.RECORDING) >= 99
+  assert _recorded_steps(tmp_path / robot_training.RECORDING) >= 99
 
 
 @pytest.mark.slow
 def test_an_episode_ends_at_the_safety_threshold(tmp_path):
-  options = robot.RobotRunOptions(_VIRTUAL_BUS, max_violations=50)
+  options = robot_training.RobotRunOptions(_VIRTUAL_BUS, max_violations=50)
   config = CONFIG.__class__(**{**CONFIG.__dict__, 'steps': 300})
-  robot.train_on_robot(config, options, tmp_path, log=lambda line: None)
-  progress = _rows(tmp_path / robot.PROGRESS_LOG)
+  robot_training.train_on_robot(
+    config, options, tmp_path, log=lambda line: None
+  )
+  progress = _rows(tmp_path / robot_training.PROGRESS_LOG)
   early = [row for row in progress if row['ended'].startswith('safety')]
   # Uniform random actions break the velocity limits within a few steps.
   assert early and all(sum(r['violations'].values()) >= 50 for r in early)
@@ -233,11 +243,11 @@ def test_an_episode_ends_at_the_safety_threshold(tmp_path):
 _KILLABLE = """
 import sys
 from robel_dm import suite
-from robel_dm.learning import robot, train
-config = train.RunConfig(domain='dclaw', task='pose_fixed', steps=100000,
+from robel_dm.learning import robot_training, training
+config = training.RunConfig(domain='dclaw', task='pose_fixed', steps=100000,
                          eval_every=100000, eval_episodes=1)
-options = robot.RobotRunOptions(suite.RobotOptions('virtual'))
-robot.train_on_robot(config, options, sys.argv[1],
+options = robot_training.RobotRunOptions(suite.RobotOptions('virtual'))
+robot_training.train_on_robot(config, options, sys.argv[1],
                      log=lambda line: print(line, flush=True))
 """
 
@@ -288,19 +298,21 @@ def test_kill_9_loses_nothing_already_recorded_and_resume_goes_on(tmp_path):
   while _alive(learners[0]):
     assert time.monotonic() < deadline, 'the orphaned learner still runs'
     time.sleep(0.2)
-  recorded = _recorded_steps(tmp_path / robot.RECORDING)
+  recorded = _recorded_steps(tmp_path / robot_training.RECORDING)
   assert recorded >= 240
   lines = []
   config = CONFIG.__class__(**{**CONFIG.__dict__, 'steps': recorded + 80})
-  robot.train_on_robot(config, VIRTUAL, tmp_path, resume=True, log=lines.append)
+  robot_training.train_on_robot(
+    config, VIRTUAL, tmp_path, resume=True, log=lines.append
+  )
   assert f'resuming at robot step {recorded}: {recorded} recorded' in lines[0]
-  assert _recorded_steps(tmp_path / robot.RECORDING) >= recorded + 80
+  assert _recorded_steps(tmp_path / robot_training.RECORDING) >= recorded + 80
 
 
 @pytest.mark.slow
 def test_an_evaluation_cut_short_is_made_again_on_resume(tmp_path, monkeypatch):
   config = CONFIG.__class__(**{**CONFIG.__dict__, 'eval_every': 320})
-  evaluate, calls = robot._RobotRun.evaluate, []
+  evaluate, calls = robot_training._RobotRun.evaluate, []
 
   def killed_in_the_second(run, policy):
     calls.append(run.steps)
@@ -309,13 +321,17 @@ def test_an_evaluation_cut_short_is_made_again_on_resume(tmp_path, monkeypatch):
       raise KeyboardInterrupt
     return evaluate(run, policy)
 
-  monkeypatch.setattr(robot._RobotRun, 'evaluate', killed_in_the_second)
+  monkeypatch.setattr(
+    robot_training._RobotRun, 'evaluate', killed_in_the_second
+  )
   with pytest.raises(KeyboardInterrupt):
-    robot.train_on_robot(config, VIRTUAL, tmp_path, log=lambda line: None)
-  monkeypatch.setattr(robot._RobotRun, 'evaluate', evaluate)
+    robot_training.train_on_robot(
+      config, VIRTUAL, tmp_path, log=lambda line: None
+    )
+  monkeypatch.setattr(robot_training._RobotRun, 'evaluate', evaluate)
   cut = calls[1]
   assert cut >= 320
-  history = robot.train_on_robot(
+  history = robot_training.train_on_robot(
     config, VIRTUAL, tmp_path, resume=True, log=lambda line: None
   )
   # The cut evaluation is made first thing: before any training episode.
@@ -382,12 +398,13 @@ def test_learning_starts_from_a_recording(tmp_path):
 @pytest.mark.parametrize(
   'options, config, message',
   [
-    (robot.RobotRunOptions(_VIRTUAL_BUS, hours=0), CONFIG, 'hours must be > 0'),
-    (robot.RobotRunOptions(_VIRTUAL_BUS), CONFIG.__class__(
+    (robot_training.RobotRunOptions(_VIRTUAL_BUS, hours=0), CONFIG,
+     'hours must be > 0'),
+    (robot_training.RobotRunOptions(_VIRTUAL_BUS), CONFIG.__class__(
       domain='dclaw', task='pose_fixed', algo='ppo'), 'must be one of'),
-    (robot.RobotRunOptions(_VIRTUAL_BUS, max_violations=0), CONFIG,
+    (robot_training.RobotRunOptions(_VIRTUAL_BUS, max_violations=0), CONFIG,
      'max_violations must be >= 1'),
-    (robot.RobotRunOptions(_VIRTUAL_BUS, updates_per_step=0), CONFIG,
+    (robot_training.RobotRunOptions(_VIRTUAL_BUS, updates_per_step=0), CONFIG,
      'updates_per_step must be in'),
   ],
 )  # fmt: skip
@@ -395,17 +412,17 @@ def test_bad_robot_options_are_refused_before_the_robot_moves(
   tmp_path, options, config, message
 ):
   with pytest.raises(ValueError, match=message):
-    robot.train_on_robot(config, options, tmp_path, log=print)
-  assert not (tmp_path / robot.RECORDING).exists()
+    robot_training.train_on_robot(config, options, tmp_path, log=print)
+  assert not (tmp_path / robot_training.RECORDING).exists()
 
 
 def test_resuming_with_other_robot_options_is_refused(tmp_path):
   (tmp_path / train_lib.CONFIG).write_text(json.dumps(CONFIG.to_json()))
-  (tmp_path / robot.ROBOT).write_text(
+  (tmp_path / robot_training.ROBOT).write_text(
     json.dumps({**VIRTUAL.to_json(), 'max_violations': 5})
   )
   with pytest.raises(ValueError, match='max_violations: 5'):
-    robot.train_on_robot(CONFIG, VIRTUAL, tmp_path, resume=True)
+    robot_training.train_on_robot(CONFIG, VIRTUAL, tmp_path, resume=True)
 
 
 @pytest.mark.slow
@@ -464,16 +481,18 @@ def test_the_agent_learns_from_the_penalized_reward(tmp_path, monkeypatch):
   config = CONFIG.__class__(
     **{**CONFIG.__dict__, 'steps': 160, 'safety_penalty': 2.0}
   )
-  robot.train_on_robot(config, VIRTUAL, tmp_path, log=lambda line: None)
+  robot_training.train_on_robot(
+    config, VIRTUAL, tmp_path, log=lambda line: None
+  )
   learned = np.concatenate([b.rewards for b in _FakeLearner.last.batches])
   rows = []
-  for episode in recording.read(tmp_path / robot.RECORDING):
+  for episode in recording.read(tmp_path / robot_training.RECORDING):
     safety = np.asarray(episode.steps['observation.safety'])[1:].sum(axis=1)
     rows.append(np.asarray(episode.steps['next.reward'])[1:] - 2.0 * safety)
   np.testing.assert_allclose(learned, np.concatenate(rows), rtol=1e-5)
   assert (np.concatenate(rows) != np.concatenate(
     [np.asarray(e.steps['next.reward'])[1:]
-     for e in recording.read(tmp_path / robot.RECORDING)]
+     for e in recording.read(tmp_path / robot_training.RECORDING)]
   )).any()  # fmt: skip
 
 
@@ -500,7 +519,9 @@ def test_demonstrations_seed_the_replay_buffer_on_a_robot(
     **{**CONFIG.__dict__, 'algo': 'sac_demos', 'steps': 80,
        'demos': (demonstrations,), 'demo_episodes': 2}
   )  # fmt: skip
-  robot.train_on_robot(config, VIRTUAL, tmp_path, log=lambda line: None)
+  robot_training.train_on_robot(
+    config, VIRTUAL, tmp_path, log=lambda line: None
+  )
   first = _FakeLearner.last.batches[0]
   assert len(first) == 160  # The demonstrations, before any robot step.
   assert sum(len(batch) for batch in _FakeLearner.last.batches) >= 240
@@ -512,13 +533,13 @@ def test_behaviour_cloning_uses_the_robot_to_evaluate(tmp_path, demonstrations):
     **{**CONFIG.__dict__, 'algo': 'bc', 'steps': 20,
        'demos': (demonstrations,), 'demo_episodes': 2}
   )  # fmt: skip
-  history = robot.train_on_robot(
+  history = robot_training.train_on_robot(
     config, VIRTUAL, tmp_path, log=lambda line: None
   )
   assert len(history) == 1 and history[0]['on_robot']
   assert history[0]['epoch'] == 20
   assert (tmp_path / train_lib.BEST_POLICY).is_file()
-  assert _recorded_steps(tmp_path / robot.RECORDING) == 80
+  assert _recorded_steps(tmp_path / robot_training.RECORDING) == 80
 
 
 @pytest.mark.slow

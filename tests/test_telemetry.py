@@ -14,7 +14,7 @@ event_pb2 = pytest.importorskip(
 )
 
 from robel_dm.learning import telemetry  # noqa: E402
-from robel_dm.learning import train as learning  # noqa: E402
+from robel_dm.learning import training as learning  # noqa: E402
 
 # Every test trains (the quick tier, -m 'not slow', leaves them out).
 pytestmark = pytest.mark.slow

@@ -14,8 +14,8 @@ import pytest
 pytest.importorskip('stable_baselines3', reason='needs robel_dm[learn]')
 pytest.importorskip('sbx', reason='needs robel_dm[learn]')
 
-from robel_dm.learning import robot, run_files, telemetry  # noqa: E402
-from robel_dm.learning import train as learning  # noqa: E402
+from robel_dm.learning import robot_training, run_files, telemetry  # noqa: E402
+from robel_dm.learning import training as learning  # noqa: E402
 
 QUIET = {'log': lambda line: None}
 CONFIG = learning.RunConfig(
@@ -126,21 +126,24 @@ def test_resume_and_overwrite_together_are_refused(old_run, tmp_path):
 
 
 def test_clearing_removes_only_the_runs_files(tmp_path):
-  names = run_files.RUN_FILES + (robot.PROGRESS_LOG, robot.ROBOT)
+  names = run_files.RUN_FILES + (
+    robot_training.PROGRESS_LOG,
+    robot_training.ROBOT,
+  )
   for name in names:
     (tmp_path / name).write_text('old')
-  (tmp_path / robot.RECORDING / 'meta').mkdir(parents=True)
+  (tmp_path / robot_training.RECORDING / 'meta').mkdir(parents=True)
   events = tmp_path / telemetry.TENSORBOARD_DIR
   events.mkdir()
   (events / 'events.out.tfevents.1.host').write_text('old')
   (events / 'notes.txt').write_text('mine')
   (tmp_path / 'notes.txt').write_text('mine')
-  learning.clear_output_dir(tmp_path, names + (robot.RECORDING,))
+  learning.clear_output_dir(tmp_path, names + (robot_training.RECORDING,))
   assert _files(tmp_path) == {
     'notes.txt': b'mine',
     f'{telemetry.TENSORBOARD_DIR}/notes.txt': b'mine',
   }
-  assert not (tmp_path / robot.RECORDING).exists()
+  assert not (tmp_path / robot_training.RECORDING).exists()
 
 
 @pytest.mark.slow

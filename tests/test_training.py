@@ -12,7 +12,7 @@ pytest.importorskip('sbx', reason='needs robel_dm[learn]')
 
 from robel_dm import evaluation, policies, provenance  # noqa: E402
 from robel_dm.learning import agents, demos  # noqa: E402
-from robel_dm.learning import train as learning  # noqa: E402
+from robel_dm.learning import training as learning  # noqa: E402
 
 QUIET = {'log': lambda line: None}
 

@@ -5,7 +5,7 @@ actor's transitions from a queue, makes at most `updates_per_step` gradient
 updates per transition, and sends the actor's weights back a few times a
 second; it runs at a lower scheduling priority than the robot's control
 loop. `Learner` is its handle in the actor's process; the actor samples
-from an `actor.StochasticActor` (see `robel_dm.learning.robot`).
+from an `actor.StochasticActor` (see `robel_dm.learning.robot_training`).
 """
 
 import contextlib

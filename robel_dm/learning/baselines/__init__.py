@@ -10,7 +10,7 @@ r"""The baseline table: its runs, how to run them, and its report.
     python -m robel_dm.learning.baselines report
 
 The runs come from `plan.json` (tasks, budgets, seeds, agents). Each run
-trains with `robel_dm.learning.train` into `runs/baselines/<name>/`.
+trains with `robel_dm.learning.training` into `runs/baselines/<name>/`.
 Every decision about a run (when it stops, which of its policies it keeps,
 which run's policy is shipped) is made on validation episodes; its
 reported success is then read once, on test episodes no decision sees
@@ -48,7 +48,7 @@ TEST = 'test.json'
 # 2, decisions on validation episodes, success read once on test episodes.
 PROTOCOL = 2
 # Episode seeds of each use, apart from each other and from training's
-# (seeds 0-2) and its evaluations' (train.EVAL_SEED_OFFSET).
+# (seeds 0-2) and its evaluations' (training.EVAL_SEED_OFFSET).
 VALIDATION_SEED_OFFSET = 2_000_000
 DEMO_SEED_OFFSET = 4_000_000
 CONFIRM_SEED_OFFSET = 6_000_000
@@ -93,7 +93,7 @@ class Run:
     return Run(self.domain, task, PLAN['default_agent'], self.seed, self.valve4)
 
   def config(self, demos: tuple[str, ...] = ()):
-    from robel_dm.learning import agents, train  # noqa: PLC0415
+    from robel_dm.learning import agents, training  # noqa: PLC0415
 
     settings = PLAN['tasks'][f'{self.domain}/{self.task}']
     steps, every = settings['steps'], settings['eval_every']
@@ -103,7 +103,7 @@ class Run:
       every *= PLAN['on_policy_factor']
     elif kind == agents.IMITATION:
       steps, every = PLAN['bc_epochs'], PLAN['bc_epochs'] // 10
-    return train.RunConfig(
+    return training.RunConfig(
       domain=self.domain,
       task=self.task,
       task_kwargs=self.task_kwargs,
@@ -212,9 +212,9 @@ def select(pattern: str | None) -> list[Run]:
 
 def evaluations(run: Run) -> list[dict]:
   """The run's training evaluations so far (none before it starts)."""
-  from robel_dm.learning import curves, train  # noqa: PLC0415
+  from robel_dm.learning import curves, training  # noqa: PLC0415
 
-  path = run.directory / train.EVAL_LOG
+  path = run.directory / training.EVAL_LOG
   return curves.read_log(path) if path.is_file() else []
 
 
@@ -282,9 +282,9 @@ def _curve_end(run: Run, rows: list[dict] | None = None) -> int | float:
 def _best_policy_steps(rows: list[dict], until: int | float) -> int:
   """The env steps at which the run's best policy (as `train` keeps it)
   was evaluated, among the evaluations up to `until` steps."""
-  from robel_dm.learning import train  # noqa: PLC0415
+  from robel_dm.learning import training  # noqa: PLC0415
 
-  best = train.best_of([row for row in rows if row['env_steps'] <= until])
+  best = training.best_of([row for row in rows if row['env_steps'] <= until])
   return best['env_steps']
 
 
@@ -299,7 +299,7 @@ def _confirmed(run: Run, log=print) -> bool:
   a run whose best policy was checked trains on until it has a new one
   (or to its budget)."""
   from robel_dm import evaluation, policies  # noqa: PLC0415
-  from robel_dm.learning import train  # noqa: PLC0415
+  from robel_dm.learning import training  # noqa: PLC0415
 
   path = run.directory / CONFIRMATIONS
   checked = (
@@ -327,7 +327,7 @@ def _confirmed(run: Run, log=print) -> bool:
       run.domain,
       run.task,
       episodes,
-      policy=policies.load(run.directory / train.BEST_POLICY),
+      policy=policies.load(run.directory / training.BEST_POLICY),
       seed=seed,
       task_kwargs=run.task_kwargs,
     )
@@ -369,7 +369,7 @@ def train_run(run: Run, log=print) -> dict | None:
   policy, reads its validation and then, once, its test episodes; returns
   its record. None if its demonstrations cannot be made yet."""
   from robel_dm import policies  # noqa: PLC0415
-  from robel_dm.learning import agents, train  # noqa: PLC0415
+  from robel_dm.learning import agents, training  # noqa: PLC0415
 
   if finished(run):
     return record(run)
@@ -387,12 +387,12 @@ def train_run(run: Run, log=print) -> dict | None:
       return None
     demos = (source,)
   config = run.config(demos)
-  resume = (run.directory / train.CONFIG).is_file()
+  resume = (run.directory / training.CONFIG).is_file()
   run.directory.mkdir(parents=True, exist_ok=True)
   if not (run.directory / COMMIT).is_file():  # The code the run began with.
     (run.directory / COMMIT).write_text(_commit())
   while True:
-    train.train(config, run.directory, resume=resume, log=log)
+    training.train(config, run.directory, resume=resume, log=log)
     resume = True
     # bc's epochs take seconds and it cannot resume: its stop stands.
     if (
@@ -402,7 +402,7 @@ def train_run(run: Run, log=print) -> dict | None:
       or _confirmed(run, log)
     ):
       break
-  best = policies.load(run.directory / train.BEST_POLICY)
+  best = policies.load(run.directory / training.BEST_POLICY)
   _read(run, best, VALIDATION)
   _read(run, best, TEST)  # Last: nothing is decided after it.
   return record(run)

@@ -45,7 +45,7 @@ from robel_dm.hardware.dynamixel import errors as dynamixel_errors
 from robel_dm.hardware.tracking import tracker as tracking
 from robel_dm.learning import agents, demos, run_files
 from robel_dm.learning import learner as learner_lib
-from robel_dm.learning import train as train_lib
+from robel_dm.learning import training as train_lib
 from robel_dm.learning.robot_options import RobotRunOptions
 from robel_dm.tasks import base
 
