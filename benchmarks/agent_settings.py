@@ -116,7 +116,7 @@ ROBOT_TASKS = {
 def run(
   setting: str, task: str, seed: int, output: pathlib.Path, grid: dict
 ) -> dict:
-  from robel_dm.learning import agents, train  # noqa: PLC0415
+  from robel_dm.learning import agents, training  # noqa: PLC0415
 
   hidden, hyperparameters = SETTINGS[setting]
   name = f'candidate_{setting}'
@@ -131,7 +131,7 @@ def run(
   config = training_speed.until_solved(domain, task, name, seed, every, budget)
   directory = output / f'{task}_{setting}_seed{seed}'
   shutil.rmtree(directory, ignore_errors=True)
-  history = train.train(config, directory, log=lambda line: None)
+  history = training.train(config, directory, log=lambda line: None)
   last = history[-1]
   return {
     'task': task,

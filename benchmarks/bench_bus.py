@@ -48,7 +48,7 @@ def physical_bus_ms(motors: int) -> float:
 @contextlib.contextmanager
 def virtual_bus(robot: str):
   process = subprocess.Popen(
-    [sys.executable, '-m', 'robel_dm.tools.virtual_bus',
+    [sys.executable, '-m', 'robel_dm.commands.virtual_bus',
      f'--robot={robot}', '--driver=ideal'],
     stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
   )  # fmt: skip

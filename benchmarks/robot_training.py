@@ -4,7 +4,7 @@ r"""Learning on robots in real time: standalone virtual buses, one run each.
     MUJOCO_GL=egl python benchmarks/robot_training.py --kill_at_step=3000 \
         --robots=default,$R/claw_a.json,$R/claw_b.json
 
-Each robot is a standalone virtual bus (`python -m robel_dm.tools.virtual_bus
+Each robot is a standalone virtual bus (`python -m robel_dm.commands.virtual_bus
 --driver=sim`, the simulation advancing with the wall clock, so 20 control
 steps of Pose take a second as on a claw); `default` is ROBEL's model, a
 file is a calibration (another claw of the same design). On each, `train
@@ -45,7 +45,7 @@ def _start_bus(dynamics: str | None) -> tuple[subprocess.Popen, str]:
   command = [
     sys.executable,
     '-m',
-    'robel_dm.tools.virtual_bus',
+    'robel_dm.commands.virtual_bus',
     '--robot=dclaw',
   ]
   if dynamics:
@@ -66,7 +66,7 @@ def _start_bus(dynamics: str | None) -> tuple[subprocess.Popen, str]:
 
 def _train(device: str, output: pathlib.Path, args, resume: bool):
   command = [
-    sys.executable, '-m', 'robel_dm.train', '--domain=dclaw',
+    sys.executable, '-m', 'robel_dm.commands.train', '--domain=dclaw',
     '--task=pose_fixed', f'--device_path={device}', f'--steps={args.steps}',
     f'--eval_every={args.eval_every}', f'--eval_episodes={args.eval_episodes}',
     '--stop_at_success=0.8', f'--seed={args.seed}', f'--output_dir={output}',
@@ -99,7 +99,7 @@ def _evaluate(device: str, policy: pathlib.Path, episodes: int) -> float:
   output = policy.parent / 'final.json'
   for _ in range(3):  # A loaded machine may miss the bus's first replies.
     result = subprocess.run(
-      [sys.executable, '-m', 'robel_dm.evaluate', '--domain=dclaw',
+      [sys.executable, '-m', 'robel_dm.commands.evaluate', '--domain=dclaw',
        '--task=pose_fixed', f'--policy={policy}', f'--episodes={episodes}',
        f'--device_path={device}', f'--output={output}'],
       cwd=ROOT, capture_output=True, text=True,

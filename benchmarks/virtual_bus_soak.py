@@ -9,7 +9,7 @@ through and those that faulted (a fault also releases the robot, which asks
 the silent motors to confirm their torque off for 0.5 s, together), and how
 many took 1 s or more.
 
-Standalone (`python -m robel_dm.tools.virtual_bus --driver=sim`, its own
+Standalone (`python -m robel_dm.commands.virtual_bus --driver=sim`, its own
 process, real time): a D'Claw client writes goals and reads the state at
 20 Hz, as the README's robot training does. Prints how long the reads took,
 how many took longer than the SDK's reply deadline (~34 ms; the client
@@ -85,7 +85,7 @@ def soak(robot: str, steps: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
 @contextlib.contextmanager
 def standalone_bus(robot: str):
   process = subprocess.Popen(
-    [sys.executable, '-m', 'robel_dm.tools.virtual_bus', f'--robot={robot}',
+    [sys.executable, '-m', 'robel_dm.commands.virtual_bus', f'--robot={robot}',
      '--driver=sim'],
     stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
   )  # fmt: skip

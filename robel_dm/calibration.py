@@ -31,7 +31,7 @@ control delay for the whole robot:
   fit: how the values were fitted (optional, informative only).
 
 A joint may give any subset of the four parameters, and joints not listed
-keep the model's values. `python -m robel_dm.sysid fit` writes these files;
+keep the model's values. `robel-sysid fit` writes these files;
 `suite.load(..., dynamics=FILE)` applies one (see docs/sysid.md).
 """
 

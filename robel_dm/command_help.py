@@ -1,4 +1,7 @@
-"""What the command lines share (`robel-evaluate`, `python -m ...`)."""
+"""The `--help` of a command line (`robel_dm.commands`): `describe`.
+
+A foundation that any command uses; it imports only absl.
+"""
 
 import sys
 

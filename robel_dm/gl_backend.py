@@ -7,7 +7,7 @@ robel_dm (which imports this module first) sets MUJOCO_GL to the offscreen
 backend this machine has (EGL, else OSMesa), so videos and tests work
 without setting anything. `CHOSEN` says what was picked (None: nothing).
 The viewer, which needs a window, undoes an automatic pick (see
-robel_dm.tools.view).
+robel_dm.commands.view).
 """
 
 import ctypes

@@ -3,7 +3,7 @@
 A policy maps a `dm_env.TimeStep` to an action. Built in: 'random' (uniform
 over the action bounds), 'zero' (the centre of every joint's range) and
 'reference' (the task's scripted controller). Trained policies are
-`policy.npz` files that `robel_dm.train` writes: the deterministic actor of
+`policy.npz` files that `robel-train` writes: the deterministic actor of
 a Stable-Baselines3 agent as plain arrays, run here with numpy alone (a
 robot's computer needs no torch). `baseline` names the policy shipped for a
 task (see docs/baselines.md).
@@ -487,7 +487,7 @@ def _unknown_policy(
   if name.endswith('.zip'):  # A Stable-Baselines3 model or checkpoint.
     return ValueError(
       f'{name} is a Stable-Baselines3 .zip: convert it to a policy.npz first '
-      f'with python -m robel_dm.learning.convert --model={name} --algo=ALGO '
+      f'with robel-convert --model={name} --algo=ALGO '
       f'--domain={domain or "D"} --task={task or "T"} --output=policy.npz, '
       'ALGO being sac, tqc or ppo (train writes a policy.npz beside its '
       'checkpoint.zip)'

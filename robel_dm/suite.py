@@ -122,7 +122,7 @@ def load(
       configuration, reset, guide motor and tracker). None (default)
       simulates.
     dynamics: a calibration (file path or `calibration.Calibration`, e.g.
-      from `python -m robel_dm.sysid fit`) of the simulated robot's joint
+      from `robel-sysid fit`) of the simulated robot's joint
       dynamics and control delay. On `RobotOptions('virtual')` it
       calibrates the simulation behind the virtual bus; a real robot has
       its own.

@@ -1,6 +1,6 @@
-"""Bad input to `python -m robel_dm.evaluate` gets one clear line before
-anything is built (issue 17: policy files, --output, --tracker), and a
-printed episode row is always in --output.
+"""Bad input to `robel-evaluate` (`python -m robel_dm.commands.evaluate`)
+gets one clear line before anything is built (issue 17: policy files,
+--output, --tracker), and a printed episode row is always in --output.
 
 The command's main() runs in this process (flags parsed as on the command
 line), so that `suite.load` can be watched: a refused run builds no

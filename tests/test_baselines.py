@@ -11,10 +11,10 @@ import pytest
 pytest.importorskip('sbx', reason='needs robel_dm[learn]')
 
 from robel_dm import suite  # noqa: E402
+from robel_dm.commands import baselines as cli  # noqa: E402
 from robel_dm.evaluation import task_args  # noqa: E402
 from robel_dm.learning import agents, baselines, training  # noqa: E402
 from robel_dm.learning.baselines import (  # noqa: E402
-  cli,
   demonstrations,
   report,
   scheduling,
@@ -362,7 +362,7 @@ def test_the_chosen_run_is_shipped_when_its_policy_is_at_hand(sandbox):
   assert selection.best_policy('dclaw', 'pose_random') is None
   assert report.ship(rows) == [
     'dclaw/pose_random (sac, seed 0; the rule ships trpo seed 0, whose run '
-    'is not here: baselines train --only=dclaw_pose_random_trpo_seed0 '
+    'is not here: robel-baselines train --only=dclaw_pose_random_trpo_seed0 '
     '--force)'
   ]
   policy(run('trpo', 0) / 'policy_best.npz', 'trpo', 0)

@@ -16,6 +16,7 @@ gymnasium = pytest.importorskip('gymnasium', reason='needs robel_dm[learn]')
 sb3 = pytest.importorskip('stable_baselines3', reason='needs robel_dm[learn]')
 sb3_contrib = pytest.importorskip('sb3_contrib', reason='needs robel_dm[learn]')
 
+from robel_dm.commands import convert as convert_command  # noqa: E402
 from robel_dm.learning import convert  # noqa: E402 (after the skips)
 
 POSE = 'robel_dm:robel_dm/DClawPoseFixed-v0'
@@ -45,7 +46,7 @@ def _model(tmp_path, algo, env_id=POSE):
 
 
 def _main(capsys, *args):
-  code = convert.main(list(args))
+  code = convert_command.main(list(args))
   captured = capsys.readouterr()
   return code, captured.out, captured.err
 
@@ -160,7 +161,7 @@ def test_actions_that_differ_are_refused(tmp_path, capsys, monkeypatch):
 @pytest.mark.slow
 def test_evaluate_names_the_conversion_for_a_zip(tmp_path):
   path = _model(tmp_path, 'sac')
-  with pytest.raises(ValueError, match='robel_dm.learning.convert') as error:
+  with pytest.raises(ValueError, match='robel-convert') as error:
     evaluation.evaluate(
       evaluation.EvalConfig('dclaw', 'pose_fixed', 1, policy=str(path))
     )
@@ -169,7 +170,7 @@ def test_evaluate_names_the_conversion_for_a_zip(tmp_path):
     [
       sys.executable,
       '-m',
-      'robel_dm.evaluate',
+      'robel_dm.commands.evaluate',
       '--domain=dclaw',
       '--task=pose_fixed',
       f'--policy={path}',

@@ -130,7 +130,7 @@ def _run_cli(*flags, cwd):
   env = dict(os.environ, MUJOCO_GL='egl')
   return subprocess.run(
     preexec_fn=child_signals.default,
-    args=[sys.executable, '-m', 'robel_dm.evaluate', *flags],
+    args=[sys.executable, '-m', 'robel_dm.commands.evaluate', *flags],
     capture_output=True, text=True, cwd=cwd, env=env,
   )  # fmt: skip
 
@@ -243,7 +243,7 @@ def test_ctrl_c_mid_sweep_keeps_every_finished_episode(tmp_path):
   output = tmp_path / 'sweep.json'
   process = subprocess.Popen(
     preexec_fn=child_signals.default,
-    args=[sys.executable, '-m', 'robel_dm.evaluate', '--domain=dclaw',
+    args=[sys.executable, '-m', 'robel_dm.commands.evaluate', '--domain=dclaw',
      '--task=all', '--episodes=20', '--policy=zero', f'--output={output}'],
     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     env=dict(os.environ, MUJOCO_GL='egl'),

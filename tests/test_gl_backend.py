@@ -37,7 +37,7 @@ def _headless():
 def test_a_command_needs_no_environment_variable(tmp_path):
   # Before: GLFW's 'The DISPLAY environment variable is missing' warning.
   result = subprocess.run(
-    [sys.executable, '-m', 'robel_dm.evaluate', '--episodes=1'],
+    [sys.executable, '-m', 'robel_dm.commands.evaluate', '--episodes=1'],
     capture_output=True, text=True, env=_headless(), cwd=tmp_path, timeout=300,
   )  # fmt: skip
   assert result.returncode == 0, result.stderr
@@ -55,7 +55,7 @@ def test_a_command_needs_no_environment_variable(tmp_path):
 def test_the_viewer_undoes_the_offscreen_choice(tmp_path):
   # It needs a window: with no display it says so, not 'MUJOCO_GL=egl'.
   result = subprocess.run(
-    [sys.executable, '-m', 'robel_dm.tools.view', '--task=pose_fixed'],
+    [sys.executable, '-m', 'robel_dm.commands.view', '--task=pose_fixed'],
     capture_output=True, text=True, env=_headless(), cwd=tmp_path, timeout=120,
   )  # fmt: skip
   assert result.returncode == 2

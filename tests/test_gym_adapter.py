@@ -163,7 +163,7 @@ _IMPORT_ORDERS = {
     'robel_dm/DClawTurnFixed-v0',
   ),
   'robel_dm_train_then_make': (
-    'import robel_dm.train\nimport gymnasium',
+    'import robel_dm.commands.train\nimport gymnasium',
     'robel_dm/DClawTurnFixed-v0',
   ),
 }

@@ -179,7 +179,12 @@ def test_episode_stats_describe_the_frames(dataset):
 def test_command_line_export_and_its_errors(dataset, tmp_path):
   out, _ = dataset
   recording_dir = out.parent / 'rec'
-  command = [sys.executable, '-m', 'robel_dm.recording', str(recording_dir)]
+  command = [
+    sys.executable,
+    '-m',
+    'robel_dm.commands.recording',
+    str(recording_dir),
+  ]
   done = subprocess.run(
     [*command, f'--lerobot={tmp_path / "again"}'],
     capture_output=True, text=True, timeout=120,

@@ -7,7 +7,9 @@ import sys
 import numpy as np
 import pytest
 
-from robel_dm import evaluation, plot
+from robel_dm import evaluation
+from robel_dm.commands import plot as plot_command
+from robel_dm.evaluation import plots
 
 pytest.importorskip('matplotlib', reason='needs robel_dm[learn]')
 
@@ -27,10 +29,10 @@ def result_files(tmp_path_factory):
 
 
 def test_a_success_rate_gets_wilsons_interval():
-  rate, low, high = plot.interval('success', np.array([1.0, 0, 0, 0]))
+  rate, low, high = plots.interval('success', np.array([1.0, 0, 0, 0]))
   assert rate == 0.25
   assert (low, high) == pytest.approx((0.0456, 0.6994), abs=1e-3)
-  rate, low, high = plot.interval('success', np.ones(4))
+  rate, low, high = plots.interval('success', np.ones(4))
   assert rate == high == 1.0 and low < 0.6  # Not 1.00..1.00.
 
 
@@ -38,10 +40,10 @@ def test_a_count_interval_never_goes_below_zero():
   counts = np.array([0.0, 0, 0, 5])
   # The normal interval the plot used to draw: below zero.
   assert counts.mean() - 1.96 * counts.std(ddof=1) / 2 < 0
-  mean, low, high = plot.interval('position', counts)
+  mean, low, high = plots.interval('position', counts)
   assert mean == 1.25 and 0 <= low <= mean <= high <= 5
   # The same files give the same figure.
-  assert plot.interval('position', counts) == (mean, low, high)
+  assert plots.interval('position', counts) == (mean, low, high)
 
 
 @pytest.mark.slow
@@ -53,9 +55,9 @@ def test_a_sweep_gets_a_row_of_panels_per_robot():
 
   sweep = [result('dclaw', t) for t in ('pose_fixed', 'turn_fixed')]
   sweep += [result('dkitty', t) for t in ('stand_fixed', 'walk_fixed')]
-  figure = plot.draw([sweep, sweep[:1]], ['a', 'b'])
+  figure = plots.draw([sweep, sweep[:1]], ['a', 'b'])
   axes = figure.axes
-  assert len(axes) == 2 * len(plot.PANELS)
+  assert len(axes) == 2 * len(plots.PANELS)
   rows = [[t.get_text() for t in a.get_yticklabels()] for a in axes[::4]]
   assert rows == [['pose_fixed', 'turn_fixed'], ['stand_fixed', 'walk_fixed']]
   assert axes[0].get_title().startswith('dclaw')
@@ -68,7 +70,7 @@ def test_a_sweep_gets_a_row_of_panels_per_robot():
 def test_plot_command_writes_the_figure(result_files, tmp_path):
   output = tmp_path / 'fig.png'
   result = subprocess.run(
-    [sys.executable, '-m', 'robel_dm.plot', *map(str, result_files),
+    [sys.executable, '-m', 'robel_dm.commands.plot', *map(str, result_files),
      f'--output={output}', '--labels=zero,reference'],
     capture_output=True, text=True, check=False,
   )  # fmt: skip
@@ -80,4 +82,4 @@ def test_plot_command_writes_the_figure(result_files, tmp_path):
 def test_plot_rejects_files_without_results(tmp_path):
   bad = tmp_path / 'bad.json'
   bad.write_text('{"not": "results"}')
-  assert plot.main([str(bad), f'--output={tmp_path / "x.png"}']) == 2
+  assert plot_command.main([str(bad), f'--output={tmp_path / "x.png"}']) == 2

@@ -41,8 +41,8 @@ def standalone_bus(monkeypatch):
   """
   monkeypatch.setattr(sdk.port_handler, 'LATENCY_TIMER', 500)
   process = subprocess.Popen(
-    args=[sys.executable, '-m', 'robel_dm.tools.virtual_bus', '--robot=dclaw',
-     '--driver=ideal'],
+    args=[sys.executable, '-m', 'robel_dm.commands.virtual_bus',
+          '--robot=dclaw', '--driver=ideal'],
     stdout=subprocess.PIPE,
     stderr=subprocess.PIPE,
     text=True,

@@ -188,7 +188,7 @@ def test_the_command_line_summarizes_a_recording(tmp_path):
     )
   )
   result = subprocess.run(
-    [sys.executable, '-m', 'robel_dm.recording', str(tmp_path)],
+    [sys.executable, '-m', 'robel_dm.commands.recording', str(tmp_path)],
     capture_output=True, text=True, check=False,
   )  # fmt: skip
   assert result.returncode == 0, result.stderr
@@ -199,7 +199,8 @@ def test_the_command_line_summarizes_a_recording(tmp_path):
     '80',
   ]
   bad = subprocess.run(
-    [sys.executable, '-m', 'robel_dm.recording', str(pathlib.Path('/nope'))],
+    [sys.executable, '-m', 'robel_dm.commands.recording',
+     str(pathlib.Path('/nope'))],
     capture_output=True, text=True, check=False,
   )  # fmt: skip
   assert bad.returncode == 2 and 'not a robel_dm recording' in bad.stderr

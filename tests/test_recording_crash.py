@@ -358,7 +358,7 @@ def test_the_summary_counts_safety_after_the_reset_as_evaluate(tmp_path):
   rows = recording.summarize(tmp_path)
   for row, record in zip(rows, results['records'], strict=True):
     assert row['safety'] == [record['safety'][f] for f in base.SAFETY_FIELDS]
-  command = [sys.executable, '-m', 'robel_dm.recording', str(tmp_path)]
+  command = [sys.executable, '-m', 'robel_dm.commands.recording', str(tmp_path)]
   result = subprocess.run(command, capture_output=True, text=True, check=False)
   assert result.returncode == 0, result.stderr
   assert result.stdout.splitlines()[1].split()[-1] == '0/0/0'

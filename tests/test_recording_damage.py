@@ -135,7 +135,7 @@ def test_a_list_row_of_the_wrong_length_costs_only_its_episode(copy):
   assert "'observation.qpos' has rows of other lengths than 9" in message
   # The summary command says so in one line, and lists the others.
   done = subprocess.run(
-    [sys.executable, '-m', 'robel_dm.recording', str(directory)],
+    [sys.executable, '-m', 'robel_dm.commands.recording', str(directory)],
     capture_output=True, text=True, timeout=120, check=False,
   )  # fmt: skip
   assert done.returncode == 0, done.stderr

@@ -131,8 +131,8 @@ def standalone_bus(monkeypatch):
   monkeypatch.setattr(port_handler, 'LATENCY_TIMER', 500)
   process = subprocess.Popen(
     preexec_fn=child_signals.default,
-    args=[sys.executable, '-m', 'robel_dm.tools.virtual_bus', '--robot=dclaw',
-     '--driver=ideal'],
+    args=[sys.executable, '-m', 'robel_dm.commands.virtual_bus',
+          '--robot=dclaw', '--driver=ideal'],
     stdout=subprocess.PIPE,
     stderr=subprocess.PIPE,
     text=True,
@@ -490,7 +490,7 @@ def test_a_vanished_port_is_named_and_the_command_line_says_so(standalone_bus):
   device_path, bus_process = standalone_bus
   evaluation = subprocess.Popen(
     preexec_fn=child_signals.default,
-    args=[sys.executable, '-m', 'robel_dm.evaluate', '--domain=dclaw',
+    args=[sys.executable, '-m', 'robel_dm.commands.evaluate', '--domain=dclaw',
      '--task=pose_fixed', '--episodes=1000', f'--device_path={device_path}',
      '--reset=move'],
     stdout=subprocess.PIPE,

@@ -343,7 +343,7 @@ def test_sigterm_says_what_was_saved_and_how_to_resume(tmp_path):
   root = pathlib.Path(__file__).resolve().parents[1]
   output = tmp_path / 'run'
   process = subprocess.Popen(
-    [sys.executable, '-m', 'robel_dm.train', '--domain=dclaw',
+    [sys.executable, '-m', 'robel_dm.commands.train', '--domain=dclaw',
      '--task=pose_fixed', '--device_path=virtual', '--steps=100000',
      '--eval_every=100000', f'--output_dir={output}'],
     cwd=root,
@@ -428,7 +428,7 @@ def test_resuming_with_other_robot_options_is_refused(tmp_path):
 @pytest.mark.slow
 def test_the_command_line_refuses_robot_flags_without_a_robot(tmp_path):
   result = subprocess.run(
-    [sys.executable, '-m', 'robel_dm.train', '--hours=1',
+    [sys.executable, '-m', 'robel_dm.commands.train', '--hours=1',
      f'--output_dir={tmp_path}'],
     capture_output=True, text=True, timeout=120,
     env={**os.environ, 'MUJOCO_GL': 'egl'},
@@ -545,7 +545,7 @@ def test_behaviour_cloning_uses_the_robot_to_evaluate(tmp_path, demonstrations):
 @pytest.mark.slow
 def test_a_robot_run_learns_with_the_robot_agent_unless_told(tmp_path):
   root = pathlib.Path(__file__).resolve().parents[1]
-  base = [sys.executable, '-m', 'robel_dm.train', '--domain=dclaw',
+  base = [sys.executable, '-m', 'robel_dm.commands.train', '--domain=dclaw',
           '--task=pose_fixed', '--steps=16', '--eval_every=16',
           '--eval_episodes=1']  # fmt: skip
   for extra, algo in (

@@ -65,7 +65,7 @@ def _kinds(problems):
 
 def _main(*args):
   return subprocess.run(
-    [sys.executable, '-m', 'robel_dm.hardware.scan', *args],
+    [sys.executable, '-m', 'robel_dm.commands.scan', *args],
     capture_output=True,
     text=True,
     timeout=60,

@@ -205,7 +205,7 @@ def test_excitation_targets_stay_in_range_and_move_chosen_joints():
 @needs_pyarrow
 def test_command_line_excites_and_fits_in_simulation(tmp_path):
   record, output = tmp_path / 'rec', tmp_path / 'cal.json'
-  run = [sys.executable, '-m', 'robel_dm.sysid']
+  run = [sys.executable, '-m', 'robel_dm.commands.sysid']
   excited = subprocess.run(
     [*run, 'excite', '--domain=dkitty', '--duration=2', f'--record={record}'],
     capture_output=True, text=True, timeout=300,
@@ -237,7 +237,7 @@ def test_command_line_excites_and_fits_in_simulation(tmp_path):
 @pytest.mark.slow
 @needs_pyarrow
 def test_command_line_errors_are_one_line(tmp_path):
-  run = [sys.executable, '-m', 'robel_dm.sysid']
+  run = [sys.executable, '-m', 'robel_dm.commands.sysid']
   cases = [
     (['excite', '--domain=dclaw'], 'excite needs --record=DIR'),
     (['excite', f'--record={tmp_path / "r"}', '--joints=FFJ10,XX'],

@@ -7,8 +7,7 @@ import pytest
 
 from robel_dm import suite
 from robel_dm.hardware.dynamixel import control_table
-from robel_dm.sysid import __main__ as command
-from robel_dm.sysid import excite, fit
+from robel_dm.sysid import excite, fit, report
 from robel_dm.tasks import excitation
 
 # Every test fits (the quick tier, -m 'not slow', leaves them out).
@@ -103,7 +102,7 @@ def test_a_well_determined_fit_raises_no_flag(well_determined):
   _, result = well_determined
   assert result.poorly_determined == {}
   assert result.not_identified == []
-  assert command.warning_lines(result) == []
+  assert report.warning_lines(result) == []
 
 
 def test_low_friction_is_flagged_as_poorly_determined():
@@ -116,9 +115,9 @@ def test_low_friction_is_flagged_as_poorly_determined():
   # kp and damping stay well determined.
   assert all(result.uncertainty['kp'] < 0.02)
   # The command prints one line per flagged value, after the table.
-  lines = command.warning_lines(result)
+  lines = report.warning_lines(result)
   assert len(lines) == 9
-  assert command.report(result).splitlines()[-9:] == lines
+  assert report.fit_table(result).splitlines()[-9:] == lines
   assert lines[0].startswith('? warning: FFJ10.frictionloss = ')
   assert 'poorly determined: standard error' in lines[0]
   assert result.calibration.fit['not_identified'] == friction

@@ -158,7 +158,7 @@ def test_clearing_removes_only_the_runs_files(tmp_path):
 def test_the_command_line_says_so_in_one_line(old_run, flags, message):
   before = _files(old_run)
   result = subprocess.run(
-    [sys.executable, '-m', 'robel_dm.train', f'--output_dir={old_run}',
+    [sys.executable, '-m', 'robel_dm.commands.train', f'--output_dir={old_run}',
      '--steps=16', '--eval_every=16', '--eval_episodes=1', *flags],
     capture_output=True, text=True, timeout=300,
     env={**os.environ, 'MUJOCO_GL': 'egl'},

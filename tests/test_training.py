@@ -348,7 +348,7 @@ def test_without_the_learn_extra_train_says_what_to_install(tmp_path, missing):
   program = (
     f'import sys; sys.modules[{missing!r}] = None; '
     f"sys.argv = ['train', '--output_dir={output}', '--steps=8']; "
-    'from absl import app; from robel_dm import train; '
+    'from absl import app; from robel_dm.commands import train; '
     'train._define_flags(); app.run(train.main)'
   )
   result = subprocess.run(

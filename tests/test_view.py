@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from robel_dm.tools import view
+from robel_dm.commands import view
 
 
 @pytest.mark.parametrize('backend', ['egl', 'osmesa'])
@@ -29,7 +29,7 @@ def test_the_command_fails_with_one_clear_line_without_a_display():
   env = {k: v for k, v in os.environ.items() if k != 'DISPLAY'}
   env['MUJOCO_GL'] = 'egl'
   result = subprocess.run(
-    [sys.executable, '-m', 'robel_dm.tools.view', '--task=turn_fixed'],
+    [sys.executable, '-m', 'robel_dm.commands.view', '--task=turn_fixed'],
     capture_output=True, text=True, env=env, check=False,
   )  # fmt: skip
   assert result.returncode == 2
@@ -44,7 +44,7 @@ def test_the_viewer_opens_and_runs_a_policy_on_a_virtual_display():
   env = {k: v for k, v in os.environ.items() if k != 'MUJOCO_GL'}
   process = subprocess.Popen(
     ['xvfb-run', '-a', '-s', '-screen 0 1024x768x24', sys.executable, '-m',
-     'robel_dm.tools.view', '--domain=dclaw', '--task=pose_fixed',
+     'robel_dm.commands.view', '--domain=dclaw', '--task=pose_fixed',
      '--policy=reference'],
     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
     start_new_session=True,

@@ -11,11 +11,11 @@ import random
 
 import pytest
 
+from robel_dm.commands import virtual_bus
 from robel_dm.hardware import config, virtual
 from robel_dm.hardware.dynamixel import control_table as table
 from robel_dm.hardware.dynamixel import protocol
 from robel_dm.hardware.dynamixel.protocol import Error, Instruction
-from robel_dm.tools import virtual_bus
 
 sdk = pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
 serial = pytest.importorskip('serial', reason='needs robel_dm[hardware]')

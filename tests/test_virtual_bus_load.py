@@ -125,13 +125,13 @@ _DESCHEDULED_S = 0.3
 
 @pytest.fixture
 def standalone_claw(tmp_path):
-  """A D'Claw's motors served by `python -m robel_dm.tools.virtual_bus` in
+  """A D'Claw's motors served by `python -m robel_dm.commands.virtual_bus` in
   its own process (the ideal driver); yields (device path, process)."""
   log = tmp_path / 'virtual_bus.log'
   with open(log, 'w') as stderr:
     process = subprocess.Popen(
       preexec_fn=child_signals.default,
-      args=[sys.executable, '-m', 'robel_dm.tools.virtual_bus',
+      args=[sys.executable, '-m', 'robel_dm.commands.virtual_bus',
        '--robot=dclaw', '--driver=ideal'],
       stdout=subprocess.PIPE,
       stderr=stderr,

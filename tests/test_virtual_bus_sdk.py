@@ -19,11 +19,11 @@ import time
 
 import pytest
 
+from robel_dm.commands import virtual_bus
 from robel_dm.hardware import config, virtual
 from robel_dm.hardware.dynamixel import control_table as table
 from robel_dm.hardware.dynamixel import protocol
 from robel_dm.hardware.dynamixel.protocol import Error, Instruction
-from robel_dm.tools import virtual_bus
 
 sdk = pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
 serial = pytest.importorskip('serial', reason='needs robel_dm[hardware]')
@@ -475,7 +475,7 @@ def test_server_is_idle_without_traffic_and_stops_cleanly():
 @pytest.mark.slow
 def test_command_line_serves_a_robot():
   process = subprocess.Popen(
-    [sys.executable, '-m', 'robel_dm.tools.virtual_bus', '--robot=dclaw'],
+    [sys.executable, '-m', 'robel_dm.commands.virtual_bus', '--robot=dclaw'],
     stdout=subprocess.PIPE,
     stderr=subprocess.PIPE,
     text=True,

@@ -1,5 +1,5 @@
-"""The baseline table's command line (`python -m robel_dm.learning.baselines`;
-see the package's docstring)."""
+"""The baseline table's command line: `robel-baselines train|list|report`
+(see `robel_dm.learning.baselines`)."""
 
 import argparse
 import json
@@ -10,7 +10,8 @@ from robel_dm.learning.baselines import report, scheduling
 
 
 def main(argv: list[str] | None = None) -> int:
-  """Runs a command (train, list, report); returns the exit code."""
+  """The command (`robel-baselines`): runs train, list or report; returns
+  the exit code."""
   parser = argparse.ArgumentParser(
     description=baselines.__doc__.splitlines()[0]
   )
@@ -55,3 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f'error: {error}', file=sys.stderr)
     return 2
   return 0
+
+
+if __name__ == '__main__':
+  sys.exit(main())

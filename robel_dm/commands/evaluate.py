@@ -1,10 +1,23 @@
-"""The evaluation command: `python -m robel_dm.evaluate` (or `robel-evaluate`).
+"""The evaluation command: `robel-evaluate` (or
+`python -m robel_dm.commands.evaluate`).
 
-Evaluates a policy on robel_dm tasks and reports ROBEL's metrics; see
-`robel_dm.evaluation.cli.HELP` for its use (what `--help` shows).
+Evaluates a policy on robel_dm tasks and reports ROBEL's metrics; its flags
+and main are `robel_dm.evaluation.cli`'s, its description `cli.HELP` (what
+`--help` shows).
 """
 
+from absl import app
+
+from robel_dm import command_help
 from robel_dm.evaluation import cli
 
+
+def run() -> None:
+  """The command (`robel-evaluate`)."""
+  cli.define_flags()
+  command_help.describe(cli.HELP, cli.__name__)
+  app.run(cli.main)
+
+
 if __name__ == '__main__':
-  cli.run()
+  run()

@@ -1,10 +1,11 @@
 """Lists a recording, or exports it as a LeRobotDataset.
 
-python -m robel_dm.recording DIR
-python -m robel_dm.recording DIR --lerobot=OUT [--lerobot_version=v2.1]
+robel-recording DIR
+robel-recording DIR --lerobot=OUT [--lerobot_version=v2.1]
 """
 
 import argparse
+from collections.abc import Sequence
 import sys
 import warnings
 
@@ -18,7 +19,7 @@ def _summary(directory: str) -> None:
     rows = reader.summarize(directory)
   for warning in caught:  # A damaged file, named (see reader.read).
     print(f'warning: {warning.message}', file=sys.stderr)
-  # Violations after the reset, as python -m robel_dm.evaluate counts them.
+  # Violations after the reset, as robel-evaluate counts them.
   print(f'{"episode":>7} {"steps":>6} {"complete":>8} {"success":>7} '
         f'{"return":>10}  pos/vel/cur violations')  # fmt: skip
   for row in rows:
@@ -32,9 +33,10 @@ def _summary(directory: str) -> None:
   print(f'{len(rows)} episodes, {sum(r["steps"] for r in rows)} steps')
 
 
-def main(argv: list[str]) -> int:
+def main(argv: Sequence[str] | None = None) -> int:
+  """The command (`robel-recording`); `argv` without the program's name."""
   parser = argparse.ArgumentParser(
-    prog='python -m robel_dm.recording', description=__doc__.splitlines()[0]
+    prog='robel-recording', description=__doc__.splitlines()[0]
   )
   parser.add_argument('directory', help='a recording directory')
   parser.add_argument(
@@ -49,7 +51,7 @@ def main(argv: list[str]) -> int:
     help='the LeRobotDataset codebase version: v3.0 (LeRobot 0.4 and '
     'later) or v2.1 (LeRobot 0.3)',
   )
-  arguments = parser.parse_args(argv[1:])
+  arguments = parser.parse_args(argv)
   try:
     if arguments.lerobot:
       info = lerobot.export(
@@ -69,4 +71,4 @@ def main(argv: list[str]) -> int:
 
 
 if __name__ == '__main__':
-  sys.exit(main(sys.argv))
+  sys.exit(main())

@@ -1,25 +1,25 @@
 r"""System identification from the command line.
 
-  python -m robel_dm.sysid excite --domain=dclaw --device_path=DEVICE \
+  robel-sysid excite --domain=dclaw --device_path=DEVICE \
       --record=DIR [--signal=steps|chirp] [--duration=10] [--episodes=1]
-  python -m robel_dm.sysid fit DIR [DIR ...] --domain=dclaw \
+  robel-sysid fit DIR [DIR ...] --domain=dclaw \
       --output=calibration.json [--parameters=kp,damping,...]
 
 `excite` drives the robot through an excitation sequence and records it;
 `fit` fits the simulated robot to recordings, prints the per-joint error
 before and after and a warning line for each poorly determined value, and
 writes the calibration that `suite.load(...,
-dynamics=FILE)` and `evaluate --dynamics=FILE` apply. See docs/sysid.md.
+dynamics=FILE)` and `robel-evaluate --dynamics=FILE` apply. See docs/sysid.md.
 """
 
 import sys
 
 from absl import app, flags
-import numpy as np
 
-from robel_dm import calibration, commands, provenance, recording, suite
+from robel_dm import calibration, command_help, provenance, recording, suite
 from robel_dm.sysid import excite as excite_lib
 from robel_dm.sysid import fit as fit_lib
+from robel_dm.sysid import report
 from robel_dm.tasks import excitation
 
 FLAGS = flags.FLAGS
@@ -117,57 +117,11 @@ def fit(directories: list[str]) -> int:
     use_currents=FLAGS.currents,
     source={'recordings': directories, 'provenance': provenance.describe()},
   )
-  print(report(result))
+  print(report.fit_table(result))
   if FLAGS.output:
     calibration.save(result.calibration, FLAGS.output)
     print(f'wrote {FLAGS.output}')
   return 0
-
-
-def _cell(result: fit_lib.FitResult, joint: int, parameter: str) -> str:
-  """A fitted value, '?' if not identified, and its ratio to the model's."""
-  value = result.fitted[parameter][joint]
-  name = f'{result.joint_names[joint]}.{parameter}'
-  flag = '?' if name in result.not_identified else ' '
-  nominal = result.nominal[parameter][joint]
-  if nominal <= 0:  # No ratio to a model value of zero (friction loss).
-    return f'{value:>13.4g}{flag}'
-  return f'{value:>10.4g}{flag}{value / nominal:>3.1f}x'
-
-
-def report(result: fit_lib.FitResult) -> str:
-  """The fit as a table: per joint, the values and the angle error."""
-  names = list(result.fitted)
-  header = f'{"joint":<8}' + ''.join(f'{n:>14}' for n in names)
-  header += f'{"RMS error (deg): model":>26}{"fit":>8}'
-  lines = [header]
-  for j, joint in enumerate(result.joint_names):
-    cells = ''.join(_cell(result, j, n) for n in names)
-    before, after = np.degrees([result.rms_before[j], result.rms_after[j]])
-    lines.append(f'{joint:<8}{cells}{before:>26.3f}{after:>8.3f}')
-  lines.append(
-    f'control delay {result.control_delay * 1e3:.1f} ms; RMS angle error '
-    f'{np.degrees(np.sqrt(np.mean(result.rms_before**2))):.3f} -> '
-    f'{np.degrees(np.sqrt(np.mean(result.rms_after**2))):.3f} deg; '
-    f'{result.evaluations} simulations'
-  )
-  lines += warning_lines(result)
-  return '\n'.join(lines)
-
-
-def warning_lines(result: fit_lib.FitResult) -> list[str]:
-  """One line per poorly determined value (marked '?' in the table)."""
-  lines = []
-  for name, reason in result.poorly_determined.items():
-    joint, parameter = name.split('.')
-    j = result.joint_names.index(joint)
-    value = result.fitted[parameter][j]
-    error = result.standard_error[parameter][j]
-    lines.append(
-      f'? warning: {name} = {value:.4g} +- {error:.2g} (standard error) is '
-      f'poorly determined: {reason}'
-    )
-  return lines
 
 
 def main(argv: list[str]) -> int:
@@ -192,9 +146,9 @@ def main(argv: list[str]) -> int:
 
 
 def run() -> None:
-  """The command (`robel-sysid`, or `python -m robel_dm.sysid`)."""
+  """The command (`robel-sysid`, or `python -m robel_dm.commands.sysid`)."""
   _define_flags()
-  commands.describe(__doc__, __name__)
+  command_help.describe(__doc__, __name__)
   app.run(main)
 
 

@@ -1,10 +1,10 @@
 r"""Trains an agent on a robel_dm task (see `robel_dm.learning.training`).
 
-    python -m robel_dm.train --domain=dclaw --task=pose_fixed --steps=30000 \
+    robel-train --domain=dclaw --task=pose_fixed --steps=30000 \
         --seed=0 --output_dir=runs/pose
-    python -m robel_dm.train --algo=bc --demos=runs/demos ...
+    robel-train --algo=bc --demos=runs/demos ...
     # On a robot (or a virtual bus), in real time:
-    python -m robel_dm.train --domain=dclaw --task=pose_fixed \
+    robel-train --domain=dclaw --task=pose_fixed \
         --device_path=/dev/ttyUSB0 --hours=2 --output_dir=runs/claw
 
 `--algo` is one of `robel_dm.learning.agents.AGENTS` (SAC on JAX by
@@ -17,7 +17,7 @@ import sys
 
 from absl import app, flags
 
-from robel_dm import commands
+from robel_dm import command_help
 from robel_dm.learning import agents
 
 
@@ -294,9 +294,9 @@ def _stopped(cause: str) -> str:
 
 
 def run() -> None:
-  """The command (`robel-train`, or `python -m robel_dm.train`)."""
+  """The command (`robel-train`, or `python -m robel_dm.commands.train`)."""
   _define_flags()
-  commands.describe(__doc__, __name__)
+  command_help.describe(__doc__, __name__)
   app.run(main)
 
 

@@ -1,6 +1,6 @@
 r"""Opens dm_control's interactive viewer on a robel_dm task.
 
-    python -m robel_dm.tools.view --domain=dclaw --task=pose_fixed \
+    robel-view --domain=dclaw --task=pose_fixed \
         --policy=reference
 
 The viewer draws into a window, so it needs a display and MuJoCo's `glfw`
@@ -27,7 +27,7 @@ if os.environ['MUJOCO_GL'] == 'glfw':
 
 from absl import app, flags  # noqa: E402
 
-from robel_dm import commands, policies, suite  # noqa: E402
+from robel_dm import command_help, policies, suite  # noqa: E402
 from robel_dm.evaluation import task_args  # noqa: E402
 
 _OFFSCREEN_BACKENDS = ('egl', 'osmesa')
@@ -41,7 +41,7 @@ def check_display(environ=os.environ) -> None:
       f'MUJOCO_GL={backend} renders offscreen only; the viewer needs a '
       'window: unset MUJOCO_GL (or set MUJOCO_GL=glfw) and run it on a '
       'display. For videos on a headless machine use '
-      '`python -m robel_dm.evaluate --video=DIR`.'
+      '`robel-evaluate --video=DIR`.'
     )
   if not environ.get('DISPLAY') and not environ.get('WAYLAND_DISPLAY'):
     raise ValueError(
@@ -56,7 +56,7 @@ def _define_flags() -> None:
   flags.DEFINE_string(
     'policy',
     None,
-    'Policy to run (as for robel_dm.evaluate); none: the viewer waits for '
+    'Policy to run (as for robel-evaluate); none: the viewer waits for '
     'you to act on the scene.',
   )
   flags.DEFINE_string('task_kwargs', '', 'Task arguments (as for evaluate).')
@@ -90,9 +90,9 @@ def main(argv):
 
 
 def run() -> None:
-  """The command (`robel-view`, or `python -m robel_dm.tools.view`)."""
+  """The command (`robel-view`, or `python -m robel_dm.commands.view`)."""
   _define_flags()
-  commands.describe(__doc__, __name__)
+  command_help.describe(__doc__, __name__)
   app.run(main)
 
 

@@ -1,6 +1,6 @@
 """The virtual bus's command line: a robot's motors on a pseudo-terminal.
 
-  python -m robel_dm.tools.virtual_bus --robot=dclaw
+  robel-virtual-bus --robot=dclaw
 
 prints the device path of a pseudo-terminal on which a virtual servo bus
 serves every motor of the robot's shipped configuration (or of `--config`),
@@ -157,10 +157,10 @@ def main(argv: Sequence[str] | None = None) -> None:
   """Serves a robot's motors until SIGINT or SIGTERM."""
   from absl import app  # Command line only.
 
-  from robel_dm import commands  # noqa: PLC0415 (imports absl)
+  from robel_dm import command_help  # noqa: PLC0415 (imports absl)
 
   flag_values = _define_flags()
-  commands.describe(__doc__, __name__)
+  command_help.describe(__doc__, __name__)
 
   def run(args: Sequence[str]) -> int:
     if len(args) > 1:

@@ -1,9 +1,9 @@
 r"""Held-out robots: the transfer table.
 
-    python -m robel_dm.zoo list
-    python -m robel_dm.zoo evaluate [--only='dclaw_pose_*/*'] \
+    robel-zoo list
+    robel-zoo evaluate [--only='dclaw_pose_*/*'] \
         [--shard=0 --shards=2]
-    python -m robel_dm.zoo report
+    robel-zoo report
 
 `evaluate` runs every shipped policy in simulation and on every zoo robot
 of its domain over the (virtual) Dynamixel bus, in simulated time, and

@@ -9,7 +9,7 @@
 The results hold the success rate (ROBEL's success evaluator: the `success`
 signal at each episode's last step), mean return, mean score, mean safety
 violations per episode and the control steps per second, with one record
-per episode. `python -m robel_dm.evaluate` is the command over it
+per episode. `robel-evaluate` is the command over it
 (`evaluation.cli`); `episodes` runs the episodes one after another,
 `workers` on local processes or a Ray cluster.
 """

@@ -1,4 +1,5 @@
-"""The evaluation command's flags and main (`python -m robel_dm.evaluate`).
+"""The evaluation command's flags and main (`robel-evaluate`, run by
+`robel_dm.commands.evaluate`).
 
 `define_flags` defines the flags (only when the command runs, so that
 importing this module defines none); `main` checks them, runs the selected
@@ -13,7 +14,7 @@ from typing import Any
 from absl import app, flags
 import tqdm
 
-from robel_dm import commands, evaluation, policies, suite
+from robel_dm import evaluation, policies, suite
 from robel_dm.evaluation import checks, table, task_args
 
 FLAGS = flags.FLAGS
@@ -21,7 +22,7 @@ FLAGS = flags.FLAGS
 # The command's description, which --help shows.
 HELP = r"""Evaluates a policy on a robel_dm task and reports ROBEL's metrics.
 
-    python -m robel_dm.evaluate --domain=dclaw --task=pose_fixed \
+    robel-evaluate --domain=dclaw --task=pose_fixed \
         --policy=reference --episodes=20 --output=results.json
 
 Prints one row per episode and a summary, and optionally writes JSON with the
@@ -72,7 +73,7 @@ def _define_task_flags() -> None:
   flags.DEFINE_string(
     'dynamics',
     None,
-    'A calibration of the simulated robot (python -m robel_dm.sysid fit); '
+    'A calibration of the simulated robot (robel-sysid fit); '
     'simulation or --device_path=virtual.',
   )
 
@@ -84,7 +85,7 @@ def _define_policy_flags() -> None:
     'random',
     'Policy to evaluate: random, zero, reference (scripted), baseline (the '
     "task's shipped trained policy), or the path of a policy.npz written "
-    'by robel_dm.train.',
+    'by robel-train.',
   )
   flags.DEFINE_bool(
     'allow_other_variant',
@@ -128,7 +129,7 @@ def _define_robot_flags() -> None:
     'device_path',
     None,
     'Run on a robot: its Dynamixel bus (e.g. /dev/ttyUSB0, or the path '
-    'printed by `python -m robel_dm.tools.virtual_bus`), or "virtual" for '
+    'printed by `robel-virtual-bus`), or "virtual" for '
     'an in-process simulated bus. Default: simulation.',
   )
   flags.DEFINE_string(
@@ -395,10 +396,3 @@ def main(argv: list[str]) -> int:
   if FLAGS.output:
     print(f'wrote {FLAGS.output}')
   return 0
-
-
-def run() -> None:
-  """The command (`robel-evaluate`, or `python -m robel_dm.evaluate`)."""
-  define_flags()
-  commands.describe(HELP, __name__)
-  app.run(main)

@@ -1,23 +1,20 @@
 r"""Plots evaluation results side by side: success, score and safety per task.
 
-    python -m robel_dm.plot A.json [B.json ...] --output=fig.png
-
-Each file is the JSON that `python -m robel_dm.evaluate --output=...` writes
-(one task) or a list of such results (a sweep); each file is one series (its
-label is the file's name, or `--labels`). One row of panels per robot (their
-scores and violation counts differ in scale), one horizontal bar per task
-and series: the mean over episodes with a 95% interval computed from the
-per-episode records, Wilson's for the success rate and a percentile
-bootstrap of the mean for the score and the violation counts (so an
-interval stays within the values an episode can take: never below zero).
-Needs matplotlib (the `learn` extra).
+Each file is the JSON that `robel-evaluate --output=...` writes (one task) or
+a list of such results (a sweep); each file is one series. One row of panels
+per robot (their scores and violation counts differ in scale), one
+horizontal bar per task and series: the mean over episodes with a 95%
+interval computed from the per-episode records, Wilson's for the success
+rate and a percentile bootstrap of the mean for the score and the violation
+counts (so an interval stays within the values an episode can take: never
+below zero). `plot` draws files into an image (the `robel-plot` command);
+needs matplotlib (the `learn` extra).
 """
 
 from collections.abc import Sequence
 import json
 import math
 import pathlib
-import sys
 from typing import Any
 
 import numpy as np
@@ -186,28 +183,3 @@ def plot(
   figure.savefig(output, dpi=100)
   pyplot.close(figure)
   return output
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-  import argparse  # noqa: PLC0415
-
-  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  parser.add_argument('results', nargs='+', help='evaluation JSON files')
-  parser.add_argument('--output', required=True, help='image to write')
-  parser.add_argument('--labels', default=None, help='comma-separated')
-  args = parser.parse_args(argv)
-  try:
-    written = plot(
-      args.results,
-      args.output,
-      args.labels.split(',') if args.labels else None,
-    )
-  except (ValueError, OSError, ImportError) as error:
-    print(f'error: {error}', file=sys.stderr)
-    return 2
-  print(f'wrote {written}')
-  return 0
-
-
-if __name__ == '__main__':
-  sys.exit(main())

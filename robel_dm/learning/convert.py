@@ -1,28 +1,24 @@
 r"""A Stable-Baselines3 model as a `policy.npz` that `evaluate` runs.
 
-    python -m robel_dm.learning.convert --model=model.zip --algo=sac \
-        --domain=dclaw --task=pose_fixed --output=policy.npz
-
-`--algo` is `sac` (stable_baselines3.SAC), `tqc` (sb3_contrib.TQC) or `ppo`
+`convert` reads and checks a model, `save` writes the policy (the
+`robel-convert` command is `robel_dm.commands.convert`). The algo is `sac`
+(stable_baselines3.SAC), `tqc` (sb3_contrib.TQC) or `ppo`
 (stable_baselines3.PPO); the model must have been trained on the task's
 Gymnasium environment (`gymnasium.make('robel_dm:robel_dm/<Name>-v0')`:
 the flat agent observation, actions in [-1, 1]). Before anything is
-written the conversion checks that the file holds a model of `--algo`
+written the conversion checks that the file holds a model of the algo
 (read from the archive, before anything in it is unpickled), that its
 observation and action spaces are the task's, and that the numpy policy
 gives the model's deterministic actions (`model.predict(obs,
 deterministic=True)`) on the task's reset observations and random ones,
-within `TOLERANCE`. Any failure is one line and exit status 2.
+within `TOLERANCE`. Any failure is a `ConvertError`, one line.
 """
 
-import argparse
-from collections.abc import Sequence
 import dataclasses
 import importlib
 import json
 import os
 import pathlib
-import sys
 import tempfile
 from typing import Any
 import zipfile
@@ -30,7 +26,6 @@ import zipfile
 import numpy as np
 
 from robel_dm import policies
-from robel_dm.evaluation import checks, task_args
 from robel_dm.learning import agents, gym
 
 # Observations the actions are compared on: the first RESETS are reset
@@ -243,47 +238,3 @@ def save(policy: policies.NumpyPolicy, output: str | pathlib.Path) -> None:
   except BaseException:
     pathlib.Path(temporary).unlink(missing_ok=True)
     raise
-
-
-class _Parser(argparse.ArgumentParser):
-  def error(self, message: str):  # One line, not argparse's usage too.
-    print(f'error: {message}', file=sys.stderr)
-    sys.exit(2)
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-  """The command line; returns the exit status (2: not converted)."""
-  parser = _Parser(description=__doc__.splitlines()[0])
-  parser.add_argument('--model', required=True, help='the SB3 model .zip')
-  parser.add_argument('--algo', required=True, help=', '.join(ALGOS))
-  parser.add_argument('--domain', required=True, help='dclaw or dkitty')
-  parser.add_argument('--task', required=True, help='e.g. pose_fixed')
-  parser.add_argument('--task_kwargs', default='', help='e.g. valve=valve4')
-  parser.add_argument('--output', required=True, help='the policy.npz')
-  args = parser.parse_args(argv)
-  try:
-    if not args.output.endswith('.npz'):
-      raise ValueError(f'--output: {args.output} must end in .npz')
-    checks.check_output(args.output)
-    policy = convert(
-      args.model,
-      args.algo,
-      args.domain,
-      args.task,
-      task_args.parse_task_kwargs(args.task_kwargs),
-    )
-    save(policy, args.output)
-  except (ValueError, OSError, ImportError) as error:
-    print(f'error: {error}', file=sys.stderr)
-    return 2
-  checked = policy.metadata['checked']
-  print(
-    f"wrote {args.output}: the model's actions on "
-    f'{checked["observations"]} observations, within '
-    f'{checked["max_difference"]:.2g}'
-  )
-  return 0
-
-
-if __name__ == '__main__':
-  sys.exit(main())

@@ -1,6 +1,6 @@
 r"""Learning on a robot, in real time (`train --device_path=...`).
 
-    python -m robel_dm.train --domain=dclaw --task=pose_fixed \
+    robel-train --domain=dclaw --task=pose_fixed \
         --device_path=/dev/ttyUSB0 --steps=8000 --output_dir=runs/claw
 
 Two processes share the work. This one (the *actor*) runs the robot: every

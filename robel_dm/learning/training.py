@@ -1,6 +1,6 @@
 r"""Trains an agent on a robel_dm task.
 
-    python -m robel_dm.train --domain=dclaw --task=pose_fixed --steps=30000 \
+    robel-train --domain=dclaw --task=pose_fixed --steps=30000 \
         --seed=0 --output_dir=runs/pose
 
 Writes into --output_dir:

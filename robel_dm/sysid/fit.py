@@ -112,7 +112,7 @@ def load_trajectories(directory, domain: str) -> list[Trajectory]:
   if not trajectories:
     raise SysidError(
       f'{directory} has no {domain} excitation episode (record one with '
-      '`python -m robel_dm.sysid excite`)'
+      '`robel-sysid excite`)'
     )
   return trajectories
 

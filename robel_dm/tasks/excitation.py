@@ -2,7 +2,7 @@
 identification.
 
 Not a benchmark task (it is not in the registry): `suite.load_excitation`
-builds it, and `python -m robel_dm.sysid excite` drives it through an
+builds it, and `robel-sysid excite` drives it through an
 excitation sequence while recording (see docs/sysid.md). The D'Claw hangs in
 its pose station with nothing to touch; the D'Kitty is held on a stand, its
 feet in the air, as a robot is set up for this on the bench. Actions are

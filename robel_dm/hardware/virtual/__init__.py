@@ -12,7 +12,7 @@ packets with it (docs/dynamixel.md section 4):
 Modules: `servo` (a servo's control table and firmware, on the rules in
 `registers`), `bus` (packet dispatch and the drivers that move the motors),
 `faults` (injected communication failures) and `transport` (the
-pseudo-terminal). `python -m robel_dm.tools.virtual_bus --robot=dclaw`
+pseudo-terminal). `robel-virtual-bus --robot=dclaw`
 serves a robot's motors and prints the device path.
 """
 

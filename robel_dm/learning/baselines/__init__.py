@@ -1,13 +1,13 @@
 r"""The baseline table: its runs, how to run them, and its report.
 
     # Run the table (resumable; one process per core, or a Ray cluster):
-    python -m robel_dm.learning.baselines train --queue=0 --queues=2 &
-    python -m robel_dm.learning.baselines train --queue=1 --queues=2 &
-    python -m robel_dm.learning.baselines train --ray_address=auto
+    robel-baselines train --queue=0 --queues=2 &
+    robel-baselines train --queue=1 --queues=2 &
+    robel-baselines train --ray_address=auto
     # One run, or a selection (fnmatch patterns on the run names):
-    python -m robel_dm.learning.baselines train --only='dclaw_pose_*'
+    robel-baselines train --only='dclaw_pose_*'
     # docs/baselines.json, docs/baselines.md's table and one figure per task:
-    python -m robel_dm.learning.baselines report
+    robel-baselines report
 
 The runs come from `plan.json` (tasks, budgets, seeds, agents). Each run
 trains with `robel_dm.learning.training` into `runs/baselines/<name>/`.

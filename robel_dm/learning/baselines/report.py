@@ -372,7 +372,7 @@ def ship(rows: list[dict]) -> list[str]:
       name = baselines.Run(domain, task, rule['algo'], rule['seed']).name
       line += (
         f'; the rule ships {rule["algo"]} seed {rule["seed"]}, whose run is '
-        f'not here: baselines train --only={name} --force'
+        f'not here: robel-baselines train --only={name} --force'
       )
     shipped.append(line + ')')
   return shipped
