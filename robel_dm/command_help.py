@@ -1,11 +1,13 @@
-"""The `--help` of a command line (`robel_dm.commands`): `describe`.
+"""The `--help` of a command line (`robel_dm.commands`): `describe`, and
+`run_absl`, which starts an absl command with it.
 
 A foundation that any command uses; it imports only absl.
 """
 
+from collections.abc import Callable
 import sys
 
-from absl import flags
+from absl import app, flags
 
 
 def describe(doc: str, flags_of: str) -> None:
@@ -24,3 +26,16 @@ def describe(doc: str, flags_of: str) -> None:
   sys.modules['__main__'].__doc__ = doc
   for flag in flags.FLAGS.get_key_flags_for_module(flags_of):
     flags.FLAGS.register_key_flag_for_module(sys.argv[0], flag)
+
+
+def run_absl(
+  define_flags: Callable[[], None],
+  main: Callable[[list[str]], int | None],
+  doc: str,
+  flags_of: str,
+) -> None:
+  """Runs an absl command: defines its flags, makes its `--help` show `doc`
+  and those flags (see `describe`), then runs `main`."""
+  define_flags()
+  describe(doc, flags_of)
+  app.run(main)

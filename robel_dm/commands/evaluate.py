@@ -6,17 +6,13 @@ and main are `robel_dm.evaluation.cli`'s, its description `cli.HELP` (what
 `--help` shows).
 """
 
-from absl import app
-
 from robel_dm import command_help
 from robel_dm.evaluation import cli
 
 
 def run() -> None:
   """The command (`robel-evaluate`)."""
-  cli.define_flags()
-  command_help.describe(cli.HELP, cli.__name__)
-  app.run(cli.main)
+  command_help.run_absl(cli.define_flags, cli.main, cli.HELP, cli.__name__)
 
 
 if __name__ == '__main__':

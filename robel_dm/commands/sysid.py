@@ -147,9 +147,7 @@ def main(argv: list[str]) -> int:
 
 def run() -> None:
   """The command (`robel-sysid`, or `python -m robel_dm.commands.sysid`)."""
-  _define_flags()
-  command_help.describe(__doc__, __name__)
-  app.run(main)
+  command_help.run_absl(_define_flags, main, __doc__, __name__)
 
 
 if __name__ == '__main__':

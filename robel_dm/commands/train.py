@@ -295,9 +295,7 @@ def _stopped(cause: str) -> str:
 
 def run() -> None:
   """The command (`robel-train`, or `python -m robel_dm.commands.train`)."""
-  _define_flags()
-  command_help.describe(__doc__, __name__)
-  app.run(main)
+  command_help.run_absl(_define_flags, main, __doc__, __name__)
 
 
 if __name__ == '__main__':
