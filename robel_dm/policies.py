@@ -280,6 +280,25 @@ class NumpyPolicy:
         f'the policy was trained with valve {trained_valve or "valve3"}, '
         f'not {valve or "valve3"}'
       )
+    given = (task_kwargs or {}).get('action_map')
+    if given is not None and given != self.action_map:
+      raise PolicyError(
+        f'the policy acts through the {self.action_map} action map, not '
+        f'{given} (leave action_map out to use its own)'
+      )
+
+  @property
+  def action_map(self) -> str:
+    """The action map the policy learned through ('robel' or 'safe')."""
+    return self.metadata.get('task_kwargs', {}).get('action_map', 'robel')
+
+  def task_kwargs_for(self, task_kwargs: dict | None) -> dict:
+    """`task_kwargs` with the policy's action map where they name none:
+    a policy acts through the map it learned with."""
+    task_kwargs = dict(task_kwargs or {})
+    if self.action_map != 'robel':
+      task_kwargs.setdefault('action_map', self.action_map)
+    return task_kwargs
 
 
 def _real_array(value, name: str) -> np.ndarray:

@@ -48,6 +48,13 @@ def address_index(addresses) -> slice | np.ndarray:
   return addresses
 
 
+# The safe action map's targets stay this far inside the position counter's
+# bounds, rad (a servo overshoots its target a little), and move at this
+# share of the velocity counter's limit.
+SAFE_POSITION_BUFFER = np.deg2rad(1.0)
+SAFE_SPEED_FRACTION = 0.9
+
+
 class ActionMap:
   """ROBEL's action map on a compiled model.
 
@@ -56,17 +63,33 @@ class ActionMap:
   most `max_joint_speed * control_timestep` away from the joint's current
   angle (ROBEL's velocity clamp). `apply` writes the targets into
   `data.ctrl` without allocating.
+
+  The safe map (`safe=True`) narrows both to the robot's safety counters:
+  [-1, 1] spans the control range within the position counter's bounds
+  (less SAFE_POSITION_BUFFER), and the clamp's speed is SAFE_SPEED_FRACTION
+  of the velocity counter's limit. `low` and `high` stay ROBEL's control
+  range (observation noise and random poses are drawn on it).
   """
 
   def __init__(
-    self, physics: mjcf.Physics, robot: 'ServoRobot', control_timestep: float
+    self,
+    physics: mjcf.Physics,
+    robot: 'ServoRobot',
+    control_timestep: float,
+    *,
+    safe: bool = False,
   ):
     ctrl_range = physics.bind(robot.actuators).ctrlrange
     self.low = ctrl_range[:, 0].copy()
     self.high = ctrl_range[:, 1].copy()
-    self.center = (self.low + self.high) / 2
-    self.half_range = (self.high - self.low) / 2
-    self.max_step = robot.max_joint_speed * control_timestep
+    target_low, target_high = self.low, self.high
+    speed = robot.max_joint_speed
+    if safe:
+      target_low, target_high = _safe_target_range(physics, robot)
+      speed = min(speed, SAFE_SPEED_FRACTION * robot.safety_limits.max_speed)
+    self.center = (target_low + target_high) / 2
+    self.half_range = (target_high - target_low) / 2
+    self.max_step = speed * control_timestep
     self._qpos_index = address_index(physics.bind(robot.joints).qposadr)
     self._ctrl_index = address_index(physics.bind(robot.actuators).element_id)
     # Views of MjData, read and written in place.
@@ -91,6 +114,26 @@ class ActionMap:
     """Maps joint angles (rad) to actions in [-1, 1]; inverse of the map."""
     action = (np.asarray(targets) - self.center) / self.half_range
     return np.clip(action, -1.0, 1.0)
+
+
+def _safe_target_range(
+  physics: mjcf.Physics, robot: 'ServoRobot'
+) -> tuple[np.ndarray, np.ndarray]:
+  """The targets of the safe action map: the control range within the
+  position counter's bounds, less SAFE_POSITION_BUFFER, rad.
+
+  Raises:
+    ValueError: naming a joint whose control range has no such targets.
+  """
+  ctrl_range = physics.bind(robot.actuators).ctrlrange
+  safe_low, safe_high = robot.safe_bounds(physics)
+  low = np.maximum(ctrl_range[:, 0], safe_low + SAFE_POSITION_BUFFER)
+  high = np.minimum(ctrl_range[:, 1], safe_high - SAFE_POSITION_BUFFER)
+  empty = np.flatnonzero(low >= high)
+  if empty.size:
+    names = [robot.joints[i].name for i in empty]
+    raise ValueError(f'no safe targets for joints {names}')
+  return low, high
 
 
 class ServoRobot(composer.Robot):
@@ -154,10 +197,10 @@ class ServoRobot(composer.Robot):
     return self.SAFETY_LIMITS
 
   def action_map(
-    self, physics: mjcf.Physics, control_timestep: float
+    self, physics: mjcf.Physics, control_timestep: float, *, safe: bool = False
   ) -> ActionMap:
-    """ROBEL's action map bound to a compiled model."""
-    return ActionMap(physics, self, control_timestep)
+    """ROBEL's action map (or the safe one) bound to a compiled model."""
+    return ActionMap(physics, self, control_timestep, safe=safe)
 
   def safe_bounds(self, physics: mjcf.Physics) -> tuple[np.ndarray, ...]:
     """Joint angles beyond which the position safety counter counts a

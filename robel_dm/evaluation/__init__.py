@@ -171,6 +171,7 @@ def evaluate(
   # A policy file is read and checked against the task before anything is
   # built (and a robot moves); None for policies that are not files.
   checked = _checked_policy(config)
+  config = _with_policy_action_map(config, checked)
   if env is not None:
     tally = episodes.Tally(_head(config, provenance_record), config.on_episode)
     _run_here(config, env, _policy(config, env, checked), tally)
@@ -211,6 +212,26 @@ def _checked_policy(config: EvalConfig) -> policies.Policy | None:
       check_seed=not config.allow_other_seed,
     )  # fmt: skip
   return checked
+
+
+def _with_policy_action_map(
+  config: EvalConfig, checked: policies.Policy | None
+) -> EvalConfig:
+  """`config` with the checked policy file's action map, if it learned
+  through another than ROBEL's and the task arguments name none (said in
+  the log)."""
+  task_kwargs_for = getattr(checked, 'task_kwargs_for', None)
+  if task_kwargs_for is None:
+    return config
+  task_kwargs = task_kwargs_for(config.task_kwargs)
+  if task_kwargs == dict(config.task_kwargs or {}):
+    return config
+  if config.log is not None:
+    config.log(
+      f'the policy acts through the {task_kwargs["action_map"]} action '
+      'map (its training task option): evaluating with it'
+    )
+  return dataclasses.replace(config, task_kwargs=task_kwargs)
 
 
 def _recorder(env, config: EvalConfig) -> recording.Recorder:

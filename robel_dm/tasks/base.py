@@ -43,6 +43,9 @@ SAFETY_FIELDS = ('position', 'velocity', 'current')
 # actions are clipped even when out-of-range actions are rejected.
 _ACTION_BOUND_TOLERANCE = 1e-6
 ACTION_BOUND_MODES = ('raise', 'clip')
+# How an action becomes joint targets: ROBEL's map, or the safe one (see
+# `servo_robot.ActionMap`).
+ACTION_MAPS = ('robel', 'safe')
 
 
 def reward_constants(default, given):
@@ -125,6 +128,10 @@ class TaskOptions:
     action_bounds: 'raise' (default) rejects actions outside [-1, 1];
       'clip' clips them as ROBEL did.
     reward: the reward constants (see `reward_constants`); ROBEL's if None.
+    action_map: 'robel' (default) maps actions to targets as ROBEL does;
+      'safe' keeps the targets inside the safety counters' position bounds
+      and moves them no faster than their speed limit (`ActionMap`), so
+      that a policy cannot drive a joint into a counted violation.
   """
 
   dynamics: randomization.DynamicsRanges | None = None
@@ -132,6 +139,7 @@ class TaskOptions:
   observation_keys: tuple[str, ...] | None = None
   action_bounds: str = 'raise'
   reward: Any = None
+  action_map: str = 'robel'
 
 
 class RobelTask(composer.Task):
@@ -160,7 +168,8 @@ class RobelTask(composer.Task):
         from `self.reward_constants`.
 
     Raises:
-      ValueError: for bad reward constants, a bad `action_bounds`, a
+      ValueError: for bad reward constants, a bad `action_bounds` or
+        `action_map`, a
         negative noise fraction, non-positive episode length or unknown
         observation keys (checked in that order).
     """
@@ -172,6 +181,10 @@ class RobelTask(composer.Task):
       raise ValueError(
         f'action_bounds must be one of {ACTION_BOUND_MODES}, got '
         f'{action_bounds!r}'
+      )
+    if options.action_map not in ACTION_MAPS:
+      raise ValueError(
+        f'action_map must be one of {ACTION_MAPS}, got {options.action_map!r}'
       )
     observation_noise = options.observation_noise
     if observation_noise < 0 or not math.isfinite(observation_noise):
@@ -185,6 +198,7 @@ class RobelTask(composer.Task):
     self._root_joint = scene.root_joint
     self._episode_steps = scene.episode_steps
     self._clip_actions = action_bounds == 'clip'
+    self._safe_action_map = options.action_map == 'safe'
     self._observation_noise = observation_noise
     self._agent_keys = keys
     self.set_timesteps(
@@ -432,7 +446,9 @@ class RobelTask(composer.Task):
     sensed = physics.bind(self._sensed_joints)
     self._qpos_index = servo_robot.address_index(sensed.qposadr)
     self._qvel_index = servo_robot.address_index(sensed.dofadr)
-    self._action_map = self._robot.action_map(physics, self.control_timestep)
+    self._action_map = self._robot.action_map(
+      physics, self.control_timestep, safe=self._safe_action_map
+    )
     self._safe_low, self._safe_high = self._robot.safe_bounds(physics)
     limits = self._robot.safety_limits
     self._max_safe_speed = limits.max_speed
