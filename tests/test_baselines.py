@@ -343,6 +343,49 @@ def test_the_agent_and_run_are_chosen_on_validation_not_test():
   assert selection.choose(low).shipped is None
 
 
+def _safety(row, validation_violations, test_violations=0.0):
+  """`row` with its validation and test violations per episode."""
+  row['validation']['violations'] = {
+    'position': validation_violations, 'velocity': 0.0, 'current': 0.0
+  }  # fmt: skip
+  row['violations'] = {'position': test_violations, 'velocity': 0.0,
+                       'current': 0.0}  # fmt: skip
+  return row
+
+
+def test_safe_solved_runs_are_preferred_on_validation_violations():
+  bar = baselines.PLAN['safe_violations']
+  by_agent = {
+    # Solves every seed, none within the budget (test readings safe).
+    'sac': [_safety(_row('sac', s, 0.95, 0.95), 5 * bar) for s in range(3)],
+    # Solves every seed too, two within it.
+    'sac_safe': [
+      _safety(_row('sac_safe', s, v, 0.9), vio, 5 * bar)
+      for s, v, vio in ((0, 0.85, bar), (1, 0.9, 2 * bar), (2, 0.82, 0))
+    ],
+    # Solves two seeds, both safely: seeds solved come first.
+    'trpo': [
+      _safety(_row('trpo', s, v, 0.9), 0)
+      for s, v in ((0, 0.9), (1, 0.9), (2, 0.5))
+    ],
+  }  # fmt: skip
+  choice = selection.choose(by_agent)
+  assert choice.algo == 'sac_safe'
+  # A safe seed, though another has the higher validation success.
+  assert choice.shipped['seed'] == 0
+  assert choice.why == (
+    'solves 3 of 3 seeds on validation, 2 of them safely; next best `sac` '
+    '3 of 3, 0 safely'
+  )
+  # A Fixed task's validation episode is its test episode.
+  fixed = _row('sac', 0, 1.0, 1.0)
+  fixed['deterministic'] = True
+  fixed['violations'] = {'position': 3.0, 'velocity': 0.0, 'current': 0.0}
+  assert selection.safely_solved(fixed)
+  # No violations read on validation (and not Fixed): not known safe.
+  assert not selection.safely_solved(_row('sac', 0, 1.0, 1.0))
+
+
 def test_the_chosen_run_is_shipped_when_its_policy_is_at_hand(sandbox):
   def policy(path, algo, seed):
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -582,7 +625,10 @@ def test_a_warm_run_starts_from_the_random_variant_and_waits_for_it(sandbox):
 def test_the_constrained_agent_learns_under_its_budget():
   config = baselines.Run('dclaw', 'pose_fixed', 'sac_safe', 0).config()
   assert config.budget == 10.0
-  assert baselines.Run('dclaw', 'pose_fixed', 'sac', 0).config().budget is None
+  assert config.task_kwargs == {'action_map': 'safe'}
+  unconstrained = baselines.Run('dclaw', 'pose_fixed', 'sac', 0).config()
+  assert unconstrained.budget is None
+  assert unconstrained.task_kwargs == {}
   names = {r.name for r in baselines.runs()}
   for key in baselines.PLAN['constrained']:
     domain, task = key.split('/')

@@ -72,7 +72,11 @@ class Run:
 
   @property
   def task_kwargs(self) -> dict[str, Any]:
-    return {'valve': 'valve4'} if self.valve4 else {}
+    kwargs = {'valve': 'valve4'} if self.valve4 else {}
+    if self.algo == PLAN.get('constrained_agent'):
+      # The constrained agent acts through the plan's action map.
+      kwargs['action_map'] = PLAN['constrained_action_map']
+    return kwargs
 
   @property
   def fixed(self) -> bool:
@@ -506,7 +510,8 @@ def record(run: Run) -> dict:
     'test_seed': test['seed'],
     'deterministic': test['deterministic'],
     'validation': {
-      key: validation[key] for key in ('success', 'score', 'episodes', 'seed')
+      key: validation[key]
+      for key in ('success', 'score', 'episodes', 'seed', 'violations')
     },
     'steps_to_80': None if reached is None else reached['env_steps'],
     'minutes_to_80': None

@@ -30,6 +30,27 @@ def validation_score(row: dict) -> float:
   return row['validation']['score'] if 'validation' in row else row['score']
 
 
+def validation_violations(row: dict) -> float | None:
+  """Safety violations per validation episode, all kinds summed; None
+  where the record has no such reading. A Fixed task's validation episode
+  is its test episode (protocol rule 3), so its record's violations are
+  that reading."""
+  violations = row.get('validation', {}).get('violations')
+  if violations is None and row.get('deterministic'):
+    violations = row['violations']
+  return None if violations is None else sum(violations.values())
+
+
+def safely_solved(row: dict) -> bool:
+  """Solved on validation within the plan's safe violations per episode."""
+  violations = validation_violations(row)
+  return (
+    validation_success(row) >= baselines.PLAN['solved']
+    and violations is not None
+    and violations <= baselines.PLAN['safe_violations']
+  )
+
+
 def steps_to_80(row: dict) -> float:
   """The env steps to the first training evaluation at 80% of a solved
   row, those of the run it started from included; UNSOLVED for a row whose
@@ -76,27 +97,40 @@ def task_groups(rows: Iterable[dict]) -> dict[tuple, dict[str, list[dict]]]:
 
 def _merit(group: list[dict], seeds: int) -> tuple:
   """Higher is better: every seed of the plan run, seeds solved on
-  validation, mean validation success, fewer env steps to 80% (median
-  over seeds), less CPU time."""
+  validation, seeds of them solved safely, mean validation success, fewer
+  env steps to 80% (median over seeds), less CPU time."""
+  safe = sum(safely_solved(row) for row in group)
   solved = sum(
     validation_success(row) >= baselines.PLAN['solved'] for row in group
   )
   mean = statistics.fmean(validation_success(row) for row in group)
   cpu = statistics.median(row['cpu_minutes'] for row in group)
-  return (len(group) >= seeds, solved, mean, -median_steps_to_80(group), -cpu)
+  return (
+    len(group) >= seeds,
+    solved,
+    safe,
+    mean,
+    -median_steps_to_80(group),
+    -cpu,
+  )
 
 
 def choose(by_agent: dict[str, list[dict]]) -> Choice:
   """The task's recommended agent (best `_merit`) and the run shipped: its
-  seed with the highest validation success, then validation score, if
-  that is solved on validation."""
+  seed solved safely, then with the highest validation success, then
+  validation score, if that is solved on validation."""
   seeds = len(baselines.PLAN['seeds'])
   ranked = sorted(
     by_agent, key=lambda algo: _merit(by_agent[algo], seeds), reverse=True
   )
   algo, group = ranked[0], by_agent[ranked[0]]
   best = max(
-    group, key=lambda row: (validation_success(row), validation_score(row))
+    group,
+    key=lambda row: (
+      safely_solved(row),
+      validation_success(row),
+      validation_score(row),
+    ),
   )
   shipped = (
     best if validation_success(best) >= baselines.PLAN['solved'] else None
@@ -108,18 +142,27 @@ def _why(algo: str, by_agent: dict[str, list[dict]], ranked: list[str]) -> str:
   group = by_agent[algo]
   bar = baselines.PLAN['solved']
   solved = sum(validation_success(row) >= bar for row in group)
+  safe = sum(safely_solved(row) for row in group)
   reading = (
     'validation'
     if all('validation' in row for row in group)
     else 'its reported success (protocol 1)'
   )
   text = f'solves {solved} of {len(group)} seeds on {reading}'
+  if safe:
+    text += f', {safe} of them safely'
   if len(ranked) < 2:
     return text + ' (the only agent run)'
   runner_up = by_agent[ranked[1]]
+  other_safe = sum(safely_solved(row) for row in runner_up)
   other = sum(validation_success(row) >= bar for row in runner_up)
   if other < solved:
     return f'{text}; next best `{ranked[1]}` {other} of {len(runner_up)}'
+  if other_safe < safe:
+    return (
+      f'{text}; next best `{ranked[1]}` {other} of {len(runner_up)}, '
+      f'{other_safe} safely'
+    )
   mine, theirs = median_steps_to_80(group), median_steps_to_80(runner_up)
   if mine < theirs:
     return f'{text}, in the fewest env steps to 80% (median over seeds)'
