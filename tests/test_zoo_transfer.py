@@ -8,6 +8,7 @@ import pytest
 # The robots run on the virtual bus.
 pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
 
+from robel_dm import assets, policies  # noqa: E402
 from robel_dm.zoo import transfer  # noqa: E402
 
 
@@ -46,3 +47,18 @@ def test_the_docs_tables_are_made_from_the_records():
     assert transfer.domain_table(records, domain) in text
   for record in records:
     assert json.dumps(record)  # Plain JSON.
+
+
+def test_the_records_are_of_the_policies_shipped_now():
+  """A shipped policy replaced by the baseline report makes its records
+  stale: every record names the agent and seed of the policy in
+  `policies/` (and every shipped policy has records)."""
+  records = transfer.load_records()
+  shipped = {path.stem: path for path in assets.baselines_dir().glob('*.npz')}
+  assert {record['policy'] for record in records} == set(shipped)
+  for record in records:
+    metadata = policies.load(shipped[record['policy']]).metadata
+    assert (record['agent'], record['training_seed']) == (
+      metadata['algo'],
+      metadata['seed'],
+    ), record['policy']
