@@ -20,7 +20,15 @@ pytest.importorskip('sbx', reason='needs robel_dm[learn]')
 pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
 
 from robel_dm import recording, suite  # noqa: E402
-from robel_dm.learning import actor, learner, robot_training  # noqa: E402
+from robel_dm.learning import (  # noqa: E402
+  actor,
+  agents,
+  demos,
+  learner,
+  replay,
+  robot_training,
+  safety,
+)
 from robel_dm.learning import training as train_lib  # noqa: E402
 from tests import child_signals, test_telemetry  # noqa: E402
 
@@ -450,11 +458,14 @@ class _FakeLearner:
        (rng.normal(size=(sizes[2], 8)), np.zeros(sizes[2])),
        (rng.normal(size=(sizes[3], 8)), np.zeros(sizes[3]))]
     )  # fmt: skip
-    self.updates, self.batches = 0, []
+    self.updates, self.batches, self.episode_ends = 0, [], []
     _FakeLearner.last = self
 
   def add(self, batch):
     self.batches.append(batch)
+
+  def end_episode(self, violations):
+    self.episode_ends.append(violations)
 
   def poll(self):
     pass
@@ -561,3 +572,289 @@ def test_a_robot_run_learns_with_the_robot_agent_unless_told(tmp_path):
     )  # fmt: skip
     config = json.loads((output / 'config.json').read_text())
     assert config['algo'] == algo, extra
+
+
+# --- Starting from a simulation policy, and a safety budget ----------------
+
+
+def _quiet(line):
+  del line
+
+
+@pytest.fixture(scope='module')
+def simulation_run(tmp_path_factory):
+  """A short simulated Pose run of the robot runs' agent (seed 1: networks
+  other than a seed-0 run's own)."""
+  output = tmp_path_factory.mktemp('simulation')
+  train_lib.train(
+    CONFIG.__class__(**{**CONFIG.__dict__, 'seed': 1, 'steps': 160,
+                        'eval_every': 160}),
+    output,
+    log=_quiet,
+  )  # fmt: skip
+  return output
+
+
+def _count_uniform_actions(monkeypatch) -> list[int]:
+  """The robot steps at which a run draws a uniform random action."""
+  steps = []
+  episode = robot_training._RobotRun.episode
+
+  class Watched:
+    def __init__(self, rng, run):
+      self.rng, self.run = rng, run
+
+    def uniform(self, *args, **kwargs):
+      steps.append(self.run.steps)
+      return self.rng.uniform(*args, **kwargs)
+
+    def __getattr__(self, name):
+      return getattr(self.rng, name)
+
+  def watched(run, purpose, policy=None):
+    if not isinstance(run.rng, Watched):
+      run.rng = Watched(run.rng, run)
+    return episode(run, purpose, policy)
+
+  monkeypatch.setattr(robot_training._RobotRun, 'episode', watched)
+  return steps
+
+
+def _observations(episode, keys) -> np.ndarray:
+  """An episode's agent vectors, one row per recorded step."""
+  return np.concatenate(
+    [
+      np.asarray(episode.steps[f'observation.{key}'], np.float32).reshape(
+        len(episode), -1
+      )
+      for key in keys
+    ],
+    axis=1,
+  )
+
+
+@pytest.mark.slow
+def test_a_robot_run_acts_with_the_simulation_policy_from_its_first_step(
+  tmp_path, monkeypatch, simulation_run
+):
+  uniform = _count_uniform_actions(monkeypatch)
+  config = CONFIG.__class__(
+    **{**CONFIG.__dict__, 'steps': 160, 'init_from': str(simulation_run)}
+  )
+  robot_training.train_on_robot(config, VIRTUAL, tmp_path, log=_quiet)
+  # No uniform random action, although learning starts at 500 steps ...
+  assert uniform == []
+  # ... and no update before it.
+  counts = json.loads((tmp_path / 'checkpoint.json').read_text())
+  assert counts == {'updates': 0, 'transitions': 240}
+  # The first training episode's actions are the source's stochastic
+  # actor's, step by step, from the run's random stream.
+  source = agents.load(
+    config.agent, train_lib.init_checkpoint(str(simulation_run)), None
+  )
+  policy = actor.StochasticActor(agents.sac_actor_layers(source))
+  metadata = json.loads((tmp_path / train_lib.METADATA).read_text())
+  assert metadata['init_from'] == str(simulation_run)
+  first = next(
+    episode
+    for episode in recording.read(tmp_path / robot_training.RECORDING)
+    if episode.metadata['purpose'] == 'training'
+  )
+  observations = _observations(first, metadata['observation_keys'])
+  rng = np.random.default_rng([config.seed, 0])
+  expected = [policy.sample(o, rng) for o in observations[:-1]]
+  np.testing.assert_allclose(
+    np.asarray(first.steps['action'])[1:], expected, rtol=1e-5, atol=1e-6
+  )
+
+
+@pytest.mark.slow
+def test_init_from_a_model_of_other_observations_fails_before_the_robot_moves(
+  tmp_path,
+):
+  turn = tmp_path / 'turn'  # D'Claw Turn: 21 observations, Pose 27.
+  train_lib.train(
+    train_lib.RunConfig(domain='dclaw', task='turn_fixed', steps=8,
+                        eval_every=8, eval_episodes=1),
+    turn,
+    log=_quiet,
+  )  # fmt: skip
+  config = CONFIG.__class__(**{**CONFIG.__dict__, 'init_from': str(turn)})
+  with pytest.raises(RuntimeError) as raised:
+    robot_training.train_on_robot(config, VIRTUAL, tmp_path / 'run', log=print)
+  message = str(raised.value)
+  assert '\n' not in message
+  assert f'--init_from={turn} does not fit this task' in message
+  assert 'Observation spaces do not match' in message
+  # The robot was never opened: nothing recorded, no episode.
+  assert not (tmp_path / 'run' / robot_training.RECORDING).exists()
+  assert not (tmp_path / 'run' / robot_training.PROGRESS_LOG).exists()
+
+
+def test_end_episode_moves_the_multiplier_as_observe_does():
+  rng = np.random.default_rng(0)
+  episode = rng.integers(0, 4, size=80).astype(np.float32)
+  for budget in (0.0, 10.0, 150.0):
+    observed = safety.SafetyConstraint(budget, multiplier=0.3)
+    ended = safety.SafetyConstraint(budget, multiplier=0.3)
+    for t, violations in enumerate(episode):
+      observed.observe(np.array([violations]), np.array([t == 79]))
+    ended.end_episode(float(episode.sum()))
+    assert ended.multiplier == observed.multiplier != 0.3
+
+
+def _transitions(n, violations=None) -> demos.Transitions:
+  return demos.Transitions(
+    observations=np.zeros((n, 3), np.float32),
+    actions=np.zeros((n, 2), np.float32),
+    rewards=np.ones(n, np.float32),
+    next_observations=np.zeros((n, 3), np.float32),
+    terminals=np.zeros(n, bool),
+    episodes=1,
+    violations=violations,
+  )
+
+
+def _buffer(size):
+  import gymnasium  # noqa: PLC0415
+  from stable_baselines3.common.buffers import ReplayBuffer  # noqa: PLC0415
+
+  return ReplayBuffer(
+    size,
+    gymnasium.spaces.Box(-1, 1, (3,), np.float32),
+    gymnasium.spaces.Box(-1, 1, (2,), np.float32),
+    device='cpu',
+  )
+
+
+def test_stored_transitions_keep_their_violations():
+  buffer = _buffer(6)
+  replay.store(buffer, _transitions(2))
+  assert getattr(buffer, 'violations', None) is None  # None known yet.
+  replay.store(buffer, _transitions(3, np.float32([4, 5, 7])))
+  np.testing.assert_array_equal(buffer.violations[:, 0], [0, 0, 4, 5, 7, 0])
+  # A full buffer overwrites its oldest rows; those of unknown violations
+  # count 0.
+  replay.store(buffer, _transitions(4))
+  np.testing.assert_array_equal(buffer.violations[:, 0], [0, 0, 0, 5, 7, 0])
+  replay.store(buffer, _transitions(1, np.float32([2])))
+  np.testing.assert_array_equal(buffer.violations[:, 0], [0, 0, 0, 2, 7, 0])
+  # Concatenated: with them, without them, or both (unknown: 0).
+  assert demos.concatenate([_transitions(2)] * 2).violations is None
+  both = demos.concatenate([_transitions(1), _transitions(2, np.ones(2))])
+  np.testing.assert_array_equal(both.violations, [0, 1, 1])
+  assert len(both) == 3 and both.episodes == 2
+
+
+def test_the_learner_moves_the_multiplier_at_each_episode_end(tmp_path):
+  import queue  # noqa: PLC0415
+  import types  # noqa: PLC0415
+
+  def learning(constraint):
+    model = types.SimpleNamespace(replay_buffer=_buffer(10), safety=constraint)
+    setup = learner.LearnerSetup('sac', 0, (8,), 3, 2, 10, '', False, 1.0)
+    outbox = queue.Queue()
+    run = learner._Learning(
+      model, setup, (8, 500), tmp_path / 'c.zip', outbox, [0, 0]
+    )
+    return run, model, outbox
+
+  run, model, outbox = learning(safety.SafetyConstraint(0.0))
+  run.handle(('data', _transitions(3, np.float32([5, 6, 9]))))
+  np.testing.assert_array_equal(
+    model.replay_buffer.violations[:3, 0], [5, 6, 9]
+  )
+  run.handle(('episode', 20.0))
+  expected = safety.SafetyConstraint(0.0)
+  expected.end_episode(20.0)
+  assert model.safety.multiplier == expected.multiplier > 0
+  assert outbox.get_nowait() == (
+    'values', {'train/safety_multiplier': expected.multiplier}
+  )  # fmt: skip
+  # Without a budget an episode's end changes nothing.
+  run, model, outbox = learning(None)
+  run.handle(('episode', 20.0))
+  assert model.safety is None and outbox.empty()
+
+
+@pytest.mark.slow
+def test_the_actor_sends_each_steps_violations_and_each_episodes_total(
+  tmp_path, monkeypatch
+):
+  monkeypatch.setattr(learner, 'Learner', _FakeLearner)
+  config = CONFIG.__class__(
+    **{**CONFIG.__dict__, 'steps': 160, 'safety_budget': 0.0}
+  )
+  options = robot_training.RobotRunOptions(_VIRTUAL_BUS, max_violations=40)
+  robot_training.train_on_robot(config, options, tmp_path, log=_quiet)
+  sent = np.concatenate([b.violations for b in _FakeLearner.last.batches])
+  episodes = recording.read(tmp_path / robot_training.RECORDING)
+  safety_rows = [
+    np.asarray(e.steps['observation.safety'])[1:].sum(axis=1) for e in episodes
+  ]
+  np.testing.assert_allclose(sent, np.concatenate(safety_rows))
+  assert sent.sum() > 0
+  # One total per training episode, those cut short by --max_violations
+  # too; evaluation episodes move no multiplier.
+  rows = _rows(tmp_path / robot_training.PROGRESS_LOG)
+  training = [r for r in rows if r['purpose'] == 'training']
+  assert any(r['ended'].startswith('safety') for r in training)
+  assert _FakeLearner.last.episode_ends == [
+    sum(r['violations'].values()) for r in training
+  ]
+
+
+def _multiplier_of(rows: list[dict], budget: float) -> float:
+  """The multiplier after the training episodes of progress `rows`."""
+  constraint = safety.SafetyConstraint(budget)
+  for row in rows:
+    if row['purpose'] == 'training' and row['steps']:
+      constraint.end_episode(sum(row['violations'].values()))
+  return constraint.multiplier
+
+
+@pytest.mark.slow
+def test_a_safety_budget_on_a_robot_learns_its_multiplier_and_resumes_it(
+  tmp_path,
+):
+  from robel_dm.learning import sac  # noqa: PLC0415
+
+  config = CONFIG.__class__(
+    **{**CONFIG.__dict__, 'steps': 160, 'safety_budget': 0.0}
+  )
+  lines = []
+  robot_training.train_on_robot(config, VIRTUAL, tmp_path, log=lines.append)
+  rows = _rows(tmp_path / robot_training.PROGRESS_LOG)
+  saved = sac.SAC.load(str(tmp_path / train_lib.CHECKPOINT)).safety
+  # Pose's random actions break the velocity limit: over a budget of 0.
+  assert saved.budget == 0.0
+  assert saved.multiplier == _multiplier_of(rows, 0.0) > 0
+  # Shown: in the progress rows and lines, and in TensorBoard.
+  assert rows[-1]['safety_multiplier'] == saved.multiplier
+  assert f'multiplier {saved.multiplier:.3g}' in lines[-2]
+  assert test_telemetry.read_events(tmp_path).get('train/safety_multiplier')
+  # The recording, read back on --resume, carries each step's violations.
+  keys = tuple(json.loads((tmp_path / train_lib.METADATA).read_text())[
+    'observation_keys'])  # fmt: skip
+  recorded = robot_training._recorded(tmp_path, config, keys)
+  np.testing.assert_allclose(
+    recorded.violations,
+    np.concatenate([
+      np.asarray(e.steps['observation.safety'])[1:].sum(axis=1)
+      for e in recording.read(tmp_path / robot_training.RECORDING)
+    ]),
+  )  # fmt: skip
+  assert recorded.violations.sum() > 0
+  # A resumed run goes on from the saved multiplier (one more training
+  # episode moves it further).
+  robot_training.train_on_robot(
+    CONFIG.__class__(**{**config.__dict__, 'steps': 320}),
+    VIRTUAL,
+    tmp_path,
+    resume=True,
+    log=lines.append,
+  )
+  rows = _rows(tmp_path / robot_training.PROGRESS_LOG)
+  resumed = sac.SAC.load(str(tmp_path / train_lib.CHECKPOINT)).safety
+  assert sum(r['purpose'] == 'training' for r in rows) == 2
+  assert resumed.multiplier == _multiplier_of(rows, 0.0) > saved.multiplier

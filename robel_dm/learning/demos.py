@@ -25,6 +25,8 @@ class Transitions:
     terminals: (n,) True where the task ended the episode (a fall), not
       the time limit.
     episodes: how many episodes they came from.
+    violations: (n,) the safety violations (all kinds summed) of the step
+      that led to each transition; None if unknown.
   """
 
   observations: np.ndarray
@@ -33,18 +35,31 @@ class Transitions:
   next_observations: np.ndarray
   terminals: np.ndarray
   episodes: int
+  violations: np.ndarray | None = None
 
   def __len__(self) -> int:
     return len(self.actions)
 
 
 def concatenate(parts: list[Transitions]) -> Transitions:
-  """One set of transitions from several, in order."""
+  """One set of transitions from several, in order. Their violations, if
+  any part has them, count 0 in the parts without."""
   fields = ('observations', 'actions', 'rewards', 'next_observations',
             'terminals')  # fmt: skip
+  violations = None
+  if any(part.violations is not None for part in parts):
+    violations = np.concatenate(
+      [
+        np.zeros(len(part), np.float32)
+        if part.violations is None
+        else part.violations
+        for part in parts
+      ]
+    )
   return Transitions(
     *(np.concatenate([getattr(part, f) for part in parts]) for f in fields),
     episodes=sum(part.episodes for part in parts),
+    violations=violations,
   )
 
 
@@ -112,13 +127,12 @@ def load(
       else 'no recorded transition'
     )
   parts = [_transitions(episode, observation_keys) for episode in chosen]
-  return Transitions(
-    *(np.concatenate(arrays) for arrays in zip(*parts, strict=True)),
-    episodes=len(chosen),
-  )
+  return concatenate(parts)
 
 
-def _transitions(episode, keys):
+def _transitions(episode, keys) -> Transitions:
+  """One recorded episode's transitions (with their violations if the
+  recording has the safety observation)."""
   steps = episode.steps
   missing = [k for k in keys if f'observation.{k}' not in steps]
   if missing:
@@ -139,4 +153,10 @@ def _transitions(episode, keys):
   discounts = np.asarray(steps['discount'], np.float32)[1:]
   terminals = np.zeros(len(actions), bool)
   terminals[-1] = discounts[-1] == 0
-  return flat[:-1], actions, rewards, flat[1:], terminals
+  violations = None
+  if 'observation.safety' in steps:
+    safety = np.asarray(steps['observation.safety'], np.float32)
+    violations = safety.reshape(len(episode), -1)[1:].sum(axis=1)
+  return Transitions(
+    flat[:-1], actions, rewards, flat[1:], terminals, 1, violations
+  )

@@ -20,8 +20,9 @@ import time
 
 import numpy as np
 
-from robel_dm.learning import agents, demos, extra, replay
+from robel_dm.learning import agents, demos, extra, replay, run_files
 from robel_dm.learning.actor import StochasticActor
+from robel_dm.learning.safety import SafetyConstraint
 
 try:
   import gymnasium
@@ -40,7 +41,15 @@ _STOP_TIMEOUT = 120.0
 
 @dataclasses.dataclass(frozen=True)
 class LearnerSetup:
-  """What the learner process builds (picklable)."""
+  """What the learner process builds (picklable).
+
+  Attributes:
+    init_from: a saved model (or the run folder holding it) the networks
+      start from when the run has no checkpoint of its own yet
+      (`agents.warm_start`); None: new networks.
+    safety_budget: the safety violations per episode the agent learns to
+      stay under (a `SafetyConstraint`); None: no budget.
+  """
 
   algo: str
   seed: int
@@ -51,6 +60,12 @@ class LearnerSetup:
   checkpoint: str
   resume: bool
   updates_per_step: float
+  init_from: str | None = None
+  safety_budget: float | None = None
+
+
+class InitFromError(ValueError):
+  """An --init_from model made for other observations or actions."""
 
 
 class _Spaces(gymnasium.Env):
@@ -74,8 +89,10 @@ class _Spaces(gymnasium.Env):
 def learner_main(setup: LearnerSetup, inbox, outbox, progress) -> None:
   """The learner process: replay buffer in, actor weights out.
 
-  Messages in: ('data', demos.Transitions) to store; ('save',) write the
-  checkpoint; ('stop',) save and end. Out: ('actor', layers, updates),
+  Messages in: ('data', demos.Transitions) to store; ('episode', total)
+  a training episode ended with `total` safety violations (moves a safety
+  budget's multiplier); ('save',) write the checkpoint; ('stop',) save
+  and end. Out: ('actor', layers, updates),
   ('saved', updates), ('stopped', updates), ('error', text), ('values',
   {name: value}) (the agent's latest logged values). `progress`
   (two shared integers): the transitions for which it has made every
@@ -91,17 +108,11 @@ def learner_main(setup: LearnerSetup, inbox, outbox, progress) -> None:
     from stable_baselines3.common.logger import Logger  # noqa: PLC0415
     from stable_baselines3.common.vec_env import DummyVecEnv  # noqa: PLC0415
 
-    agent = agents.get(setup.algo)
     env = DummyVecEnv(
       [lambda: _Spaces(setup.observation_size, setup.action_size)]
     )
     checkpoint = pathlib.Path(setup.checkpoint)
-    if setup.resume and checkpoint.is_file():
-      model = agents.load(agent, checkpoint, env)
-    else:
-      model = agents.build(
-        agent, env, setup.seed, setup.layers, setup.buffer_size
-      )
+    model = _model(setup, env, checkpoint)
     # A loaded model's buffer is empty: the recording refills it.
     replay.grow(model, setup.buffer_size)
     model.set_logger(Logger(folder=None, output_formats=[]))
@@ -109,10 +120,44 @@ def learner_main(setup: LearnerSetup, inbox, outbox, progress) -> None:
     starts = int(model.learning_starts)
     _learn(model, setup, (chunk, starts), checkpoint, (inbox, outbox),
            progress)  # fmt: skip
+  except InitFromError as error:  # A setting, not a bug: one line.
+    outbox.put(('error', str(error)))
   except BaseException as error:  # noqa: BLE001 (reported to the actor)
     outbox.put(('error', f'{type(error).__name__}: {error}'))
     outbox.cancel_join_thread()  # The actor may be gone: never hang.
     raise
+
+
+def _model(setup: LearnerSetup, env, checkpoint: pathlib.Path):
+  """The learner's model: the run's own checkpoint when it resumes from
+  one, else the networks of `setup.init_from`, else new ones; under the
+  run's safety budget if it has one (a resumed model keeps its own, with
+  its multiplier).
+
+  Raises:
+    InitFromError: `setup.init_from` was made for other observations or
+      actions.
+  """
+  agent = agents.get(setup.algo)
+  if setup.resume and checkpoint.is_file():
+    model = agents.load(agent, checkpoint, env)
+  elif setup.init_from is not None:
+    source = run_files.init_checkpoint(setup.init_from)
+    try:
+      model = agents.warm_start(
+        agent, source, env, setup.seed, setup.buffer_size
+      )
+    except ValueError as error:
+      raise InitFromError(
+        f'--init_from={setup.init_from} does not fit this task: {error}'
+      ) from error
+  else:
+    model = agents.build(
+      agent, env, setup.seed, setup.layers, setup.buffer_size
+    )
+  if setup.safety_budget is not None and model.safety is None:
+    model.safety = SafetyConstraint(setup.safety_budget)
+  return model
 
 
 def _learn(model, setup, schedule, checkpoint, queues, progress) -> None:
@@ -217,6 +262,8 @@ class _Learning:
     if kind == 'data':
       replay.store(self._buffer, message[1])
       self.seen += len(message[1])
+    elif kind == 'episode':
+      self._end_episode(message[1])
     elif kind == 'save':
       self._save()
       self._outbox.put(('saved', self.updates))
@@ -224,6 +271,17 @@ class _Learning:
       self._stop()
       return True
     return False
+
+  def _end_episode(self, violations: float) -> None:
+    """A training episode's end: a safety budget's multiplier moves by its
+    `violations`, and goes to the actor."""
+    constraint = self._model.safety
+    if constraint is None:
+      return
+    constraint.end_episode(violations)
+    self._outbox.put(
+      ('values', {'train/safety_multiplier': constraint.multiplier})
+    )
 
   def abandon(self) -> None:
     """Saves, and lets the process end without handing over what it sent."""
@@ -299,6 +357,11 @@ class Learner:
     self._inbox.put(('data', transitions))
     self._sent += len(transitions)
 
+  def end_episode(self, violations: float) -> None:
+    """Tells the learner a training episode ended, with `violations` safety
+    violations in all (after its transitions)."""
+    self._inbox.put(('episode', float(violations)))
+
   def wait_until_caught_up(self, timeout: float = _STOP_TIMEOUT) -> None:
     """Waits until the learner has made every update the transitions sent
     so far allow: a robot in simulated time keeps the pace a learner on a
@@ -331,7 +394,7 @@ class Learner:
       self.actor = StochasticActor(message[1])
       self.actor_since = time.monotonic()
     elif kind == 'values':
-      self.values = message[1]
+      self.values = {**self.values, **message[1]}
     elif kind == 'error':
       raise RuntimeError(f'the learner process failed: {message[1]}')
     return kind

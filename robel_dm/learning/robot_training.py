@@ -28,6 +28,12 @@ Evaluations run on the robot too: `eval_episodes` episodes of the
 deterministic actor every `eval_every` robot steps. Their steps are recorded
 and learned from like the others; `steps` counts every control step the
 robot made.
+
+`init_from` starts the networks from a saved model (a simulation run's):
+the robot acts with its stochastic actor from the first step, with no
+uniform random actions before `learning_starts`. `safety_budget` has the
+learner price each step's safety violations with a multiplier that moves
+at the end of every training episode (`robel_dm.learning.safety`).
 """
 
 from collections.abc import Callable
@@ -62,6 +68,8 @@ FAULTS = (
 # Agents that can learn on a robot: off-policy ones learn while it moves;
 # behaviour cloning learns from data and is evaluated on it.
 ROBOT_AGENTS = ('sac', 'droq', 'sac_demos', 'bc')
+# The learner's value of a safety budget's multiplier.
+_MULTIPLIER = 'train/safety_multiplier'
 
 
 # --- The actor -------------------------------------------------------------
@@ -103,6 +111,9 @@ class _RobotRun:
     self.learning_starts = int(
       config.agent.hyperparameters.get('learning_starts', 0)
     )
+    # Networks loaded from --init_from act from the first step: no random
+    # actions on a robot before learning starts.
+    self.warm = config.init_from is not None
 
   def open(self, seed: int) -> None:
     env = self.options.load(self.config, seed)
@@ -171,7 +182,10 @@ class _RobotRun:
 
   def episode(self, purpose: str, policy=None) -> _Episode:
     """One episode: training (the stochastic actor, or uniform actions
-    before learning starts) or evaluation (`policy`, deterministic)."""
+    before learning starts unless the networks were loaded) or evaluation
+    (`policy`, deterministic). A training episode that made a step tells
+    the learner its violations in all (a safety budget's multiplier moves
+    by them)."""
     self.env.annotate(purpose=purpose)
     timestep = self._reset()
     result = _Episode(purpose)
@@ -183,7 +197,9 @@ class _RobotRun:
       self.learner.poll()
       if policy is not None:
         action = policy.act(observation)
-      elif self.learner.actor is None or self.steps < self.learning_starts:
+      elif self.learner.actor is None or (
+        self.steps < self.learning_starts and not self.warm
+      ):
         action = self.rng.uniform(-1.0, 1.0, action_size)
       else:
         action = self.learner.actor.sample(observation, self.rng)
@@ -208,6 +224,7 @@ class _RobotRun:
           next_observations=next_observation[None],
           terminals=np.array([terminal]),
           episodes=0,
+          violations=np.float32([safety.sum()]),
         )
       )
       if self.options.paced_by_learner:
@@ -227,6 +244,8 @@ class _RobotRun:
     else:
       if timestep.discount == 0.0:
         result.ended = 'task ended it'
+    if policy is None and result.steps:  # Cut short or not.
+      self.learner.end_episode(float(result.violations.sum()))
     self.episodes += 1
     self._progress(result, since)
     return result
@@ -251,6 +270,10 @@ class _RobotRun:
       'early_ends': self.early_ends,
       'timing': None if timing is None else dataclasses.asdict(timing),
     }
+    # Under a safety budget: the latest multiplier the learner sent.
+    multiplier = getattr(self.learner, 'values', {}).get(_MULTIPLIER)
+    if multiplier is not None:
+      row['safety_multiplier'] = multiplier
     with open(self.output / PROGRESS_LOG, 'a') as file:
       file.write(json.dumps(row) + '\n')
     self._scalars(result, timing)
@@ -262,6 +285,7 @@ class _RobotRun:
       + (f'; {timing.line()}' if timing is not None else '')
       + f' | robot steps {self.steps}, updates {self.learner.updates}, '
       f'faults {self.faults}'
+      + ('' if multiplier is None else f', multiplier {multiplier:.3g}')
     )
 
   def _scalars(self, result: _Episode, timing) -> None:
@@ -358,6 +382,7 @@ def train_on_robot(
   data, recorded = _prepare_output_dir(
     config, options, output, keys, resume=resume, overwrite=overwrite
   )
+  (output / train_lib.METADATA).write_text(json.dumps(metadata, indent=1))
   run = train_lib.Run(output, config, log)
   if resume:
     run.load_history()
@@ -384,15 +409,6 @@ def _check_settings(
     )
   if config.num_envs != 1:
     raise ValueError('a robot is one environment: --num_envs must be 1')
-  # The robot's learner has its own replay path: neither is wired to it.
-  for name in ('safety_budget', 'init_from'):
-    if getattr(config, name) is not None:
-      raise ValueError(
-        f'--{name} is for simulation runs; on a robot, --max_violations '
-        'ends an episode at a number of violations'
-        if name == 'safety_budget'
-        else f'--{name} is for simulation runs, not yet for a robot run'
-      )
   agents.check_installed(config.agent)
 
 
@@ -467,6 +483,8 @@ def _learn_on_robot(
     resume=resume,
     updates_per_step=options.updates_per_step
     or agents.updates_per_step(config.agent),
+    init_from=config.init_from,
+    safety_budget=config.budget,
   )
   learner = learner_lib.Learner(setup)
   actor = _RobotRun(config, options, output, metadata, learner, run)
@@ -519,14 +537,16 @@ def _sizes(config, keys: tuple[str, ...]) -> tuple[int, int]:
 
 def _actor_loop(config, options, run, actor, learner, metadata) -> None:
   deadline = time.monotonic() + options.hours * 3600 if options.hours else None
+  if actor.warm or actor.steps >= actor.learning_starts:
+    # A resumed run acts with its restored networks from its first step,
+    # and a run --init_from with the loaded ones, not with random actions
+    # while the learner loads them; a model that does not fit the task
+    # fails here, before the robot is opened.
+    learner.wait_for_actor()
   # A new stream of episodes per session: a resumed run does not replay
   # the goals it has already seen.
   actor.open(config.seed * 1000 + actor.episodes)
   actor.rng = np.random.default_rng([config.seed, actor.steps])
-  if actor.steps >= actor.learning_starts:
-    # A resumed run acts with its restored networks from its first step,
-    # not with random actions while the learner loads them.
-    learner.wait_for_actor()
   run.start_clocks()
 
   def evaluate_now() -> bool:
@@ -568,6 +588,9 @@ def _evaluate_on_robot(config, options, output, run, policy, metadata, log):
       pass
 
     def add(self, batch):
+      pass
+
+    def end_episode(self, violations):
       pass
 
     def wait_until_caught_up(self):

@@ -33,6 +33,13 @@ RUN_FILES = (
 EVENT_FILES = 'events.out.tfevents.*'
 
 
+def init_checkpoint(init_from: str | pathlib.Path) -> pathlib.Path:
+  """The saved model a run starts from (`--init_from`): `init_from`, or
+  the checkpoint in the run folder it names."""
+  path = pathlib.Path(init_from)
+  return path / CHECKPOINT if path.is_dir() else path
+
+
 def check_output_dir(
   output: str | pathlib.Path,
   resume: bool,

@@ -99,8 +99,10 @@ class SAC(sbx.SAC):
   def start_over(self, seed: int, buffer_size: int) -> None:
     """Keeps the networks and the entropy coefficient, and starts a new run
     from them: counters at 0, random streams from `seed`, an empty replay
-    buffer of `buffer_size` transitions."""
+    buffer of `buffer_size` transitions, no safety budget (the new run's
+    own, if any, is set after)."""
     self.num_timesteps = self._episode_num = self._n_updates = 0
+    self.safety = None
     self.set_random_seed(seed)
     self.policy.rng = self._exploration_rng
     del self._exploration_rng

@@ -36,17 +36,22 @@ class SafetyConstraint:
       self._episode_violations = np.zeros(len(violations))
     self._episode_violations += violations
     for total in self._episode_violations[dones]:
-      # Relative to the budget, and bounded: one wild early episode (Pose
-      # counts hundreds) must not throw the multiplier to its ceiling.
-      excess = np.clip((total - self.budget) / max(self.budget, 1.0), -1, 10)
-      self.multiplier = float(
-        np.clip(
-          self.multiplier + self.learning_rate * excess,
-          0.0,
-          self.max_multiplier,
-        )
-      )
+      self.end_episode(total)
     self._episode_violations[dones] = 0.0
+
+  def end_episode(self, total: float) -> None:
+    """Moves the multiplier by the excess over the budget of one finished
+    episode that made `total` violations (all kinds summed)."""
+    # Relative to the budget, and bounded: one wild early episode (Pose
+    # counts hundreds) must not throw the multiplier to its ceiling.
+    excess = np.clip((total - self.budget) / max(self.budget, 1.0), -1, 10)
+    self.multiplier = float(
+      np.clip(
+        self.multiplier + self.learning_rate * excess,
+        0.0,
+        self.max_multiplier,
+      )
+    )
 
 
 def step_violations(infos) -> np.ndarray:

@@ -15,6 +15,9 @@ every agent:
 and a run on a robot, at the end of every episode (x: robot steps):
 
   train/<name>             the learner's latest values (as above)
+  train/safety_multiplier  with --safety_budget: the price of one
+                           violation, the latest the learner sent (it
+                           moves at every training episode's end)
   robot/jitter_p50_ms, robot/jitter_p99_ms, robot/late_steps
                            the episode's control timing
   robot/violations_<kind>  the episode's safety violations

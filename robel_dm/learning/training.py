@@ -59,6 +59,7 @@ from robel_dm.learning.run_files import (
   REPLAY_BUFFER,
   check_output_dir,
   clear_output_dir,
+  init_checkpoint,
 )
 
 try:
@@ -552,13 +553,6 @@ def _reinforce(config: RunConfig, run: Run, data, metadata, resume) -> None:
     if run.solved(row):
       break
   vec_env.close()
-
-
-def init_checkpoint(init_from: str) -> pathlib.Path:
-  """The saved model a run starts from: `init_from`, or the checkpoint in
-  the run folder it names."""
-  path = pathlib.Path(init_from)
-  return path / CHECKPOINT if path.is_dir() else path
 
 
 def _new_model(config: RunConfig, vec_env, data):
