@@ -5,6 +5,7 @@ period jitter, late steps) come from the standalone bus in
 benchmarks/robot_training.py.
 """
 
+import dataclasses
 import json
 import os
 import pathlib
@@ -858,3 +859,41 @@ def test_a_safety_budget_on_a_robot_learns_its_multiplier_and_resumes_it(
   resumed = sac.SAC.load(str(tmp_path / train_lib.CHECKPOINT)).safety
   assert sum(r['purpose'] == 'training' for r in rows) == 2
   assert resumed.multiplier == _multiplier_of(rows, 0.0) > saved.multiplier
+
+
+def test_robot_runs_default_to_the_safe_map_and_a_budget():
+  safe = robot_training.with_safe_defaults(CONFIG)
+  assert safe.task_kwargs == {**CONFIG.task_kwargs, 'action_map': 'safe'}
+  assert safe.budget == robot_training.ROBOT_SAFETY_BUDGET == 10.0
+  # What the run names stays.
+  named = dataclasses.replace(
+    CONFIG, task_kwargs={'action_map': 'robel'}, safety_budget=50.0
+  )
+  kept = robot_training.with_safe_defaults(named)
+  assert kept.task_kwargs == {'action_map': 'robel'}
+  assert kept.budget == 50.0
+  penalized = dataclasses.replace(CONFIG, safety_penalty=1.0)
+  assert robot_training.with_safe_defaults(penalized).safety_budget is None
+  # Behaviour cloning learns no price: the map only.
+  cloned = dataclasses.replace(CONFIG, algo='bc', demos=('demos',))
+  assert robot_training.with_safe_defaults(cloned).safety_budget is None
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize('flag', [None, '--nosafe_defaults'])
+def test_the_command_line_applies_the_safe_defaults_on_a_robot(tmp_path, flag):
+  result = subprocess.run(
+    [sys.executable, '-m', 'robel_dm.commands.train', '--device_path=virtual',
+     '--domain=dclaw', '--task=pose_fixed', '--steps=80', '--eval_every=80',
+     '--eval_episodes=1', f'--output_dir={tmp_path}', *([flag] if flag else [])],
+    capture_output=True, text=True, timeout=300,
+    env={**os.environ, 'MUJOCO_GL': 'egl'},
+  )  # fmt: skip
+  assert result.returncode == 0, result.stderr[-2000:]
+  saved = json.loads((tmp_path / train_lib.CONFIG).read_text())
+  if flag is None:
+    assert saved['task_kwargs'] == {'action_map': 'safe'}
+    assert saved['safety_budget'] == 10.0
+  else:
+    assert saved['task_kwargs'] == {}
+    assert saved['safety_budget'] is None

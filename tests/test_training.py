@@ -275,6 +275,10 @@ def test_demonstrations_load_as_aligned_transitions(pose_demos):
     demos.load(pose_demos, 'dclaw', 'turn_random', tuple(keys))
   with pytest.raises(demos.DemoError, match='21 asked'):
     demos.load(pose_demos, 'dclaw', 'pose_fixed', tuple(keys), episodes=21)
+  # Their actions are ROBEL's map's targets, not the safe map's.
+  with pytest.raises(demos.DemoError, match='through the robel action map'):
+    demos.load(pose_demos, 'dclaw', 'pose_fixed', tuple(keys),
+               task_kwargs={'action_map': 'safe'})  # fmt: skip
 
 
 @pytest.mark.slow
@@ -407,6 +411,24 @@ def test_a_warm_start_begins_where_its_source_ended(tmp_path):
   assert rows[0]['mean_return'] == history[-1]['mean_return']
   metadata = json.loads((tmp_path / 'warm' / 'metadata.json').read_text())
   assert metadata['init_from'] == str(source)
+
+
+def test_a_warm_start_refuses_a_source_of_other_networks(tmp_path):
+  source = tmp_path / 'source'
+  source.mkdir()
+  (source / 'checkpoint.zip').write_bytes(b'')  # Only its settings count.
+  settings = _config(algo='sac').to_json()
+  (source / 'config.json').write_text(json.dumps(settings))
+  # DroQ's critics (dropout, layer norm) are not SAC's.
+  with pytest.raises(ValueError, match='made by --algo=sac .*pass --algo=sac'):
+    _config(algo='droq', init_from=str(source)).check()
+  with pytest.raises(ValueError, match=r'networks \[16, 16\]'):
+    _config(init_from=str(source), hidden=(32, 32)).check()
+  with pytest.raises(ValueError, match='learned with action_map robel'):
+    _config(init_from=str(source), task_kwargs={'action_map': 'safe'}).check()
+  # The same networks with other settings: a warm start's purpose.
+  _config(algo='sac_warm', init_from=str(source)).check()
+  _config(init_from=str(source / 'checkpoint.zip')).check()
 
 
 @pytest.mark.slow

@@ -125,6 +125,14 @@ def _define_robot_flags() -> None:
     'dynamics', None, 'With --device_path=virtual: calibration file.'
   )
   flags.DEFINE_float('hours', None, 'With --device_path: wall-clock budget.')
+  flags.DEFINE_bool(
+    'safe_defaults',
+    True,
+    'With --device_path: act through the safe action map and learn under a '
+    'budget of 10 safety violations per episode, unless --task_kwargs, '
+    '--safety_budget or --safety_penalty say otherwise '
+    "(--nosafe_defaults: ROBEL's map, no budget).",
+  )
   flags.DEFINE_integer(
     'max_violations',
     None,
@@ -241,6 +249,8 @@ def _train_on_robot(config, robot_options, log) -> None:
   `suite.RobotOptions`), in real time."""
   from robel_dm.learning import robot_training  # noqa: PLC0415
 
+  if FLAGS.safe_defaults:
+    config = robot_training.with_safe_defaults(config)
   options = robot_training.RobotRunOptions(
     robot_options,
     **{name: FLAGS[name].value for name in _ROBOT_RUN_FLAGS},
@@ -259,7 +269,9 @@ def _train_in_simulation(config, log) -> None:
   """Learns `config`'s task in simulation; refuses the robot-only flags."""
   from robel_dm.learning import training as learning  # noqa: PLC0415
 
-  given = [name for name in _ROBOT_RUN_FLAGS if FLAGS[name].present]
+  given = [
+    name for name in (*_ROBOT_RUN_FLAGS, 'safe_defaults') if FLAGS[name].present
+  ]
   if given:
     raise ValueError(f'--{given[0]} needs --device_path (it is about a robot)')
   learning.train(

@@ -67,6 +67,23 @@ class DemoError(ValueError):
   """A demonstration set that cannot be used."""
 
 
+def _check_variant(directory, recorded: dict, task_kwargs: dict | None) -> None:
+  """Raises DemoError unless a recording's valve and action map are the
+  run's (an action means another joint target through another map)."""
+  task_kwargs = task_kwargs or {}
+  valve = recorded.get('valve')
+  if valve != task_kwargs.get('valve'):
+    raise DemoError(
+      f'demonstrations in {directory} use valve {valve or "valve3"}'
+    )
+  action_map = recorded.get('action_map', 'robel')
+  if action_map != task_kwargs.get('action_map', 'robel'):
+    raise DemoError(
+      f'demonstrations in {directory} act through the {action_map} action '
+      f'map, not the {task_kwargs.get("action_map", "robel")} one'
+    )
+
+
 def load(
   directories: str | pathlib.Path | list,
   domain: str,
@@ -107,11 +124,7 @@ def load(
           f'demonstrations in {directory} are of {meta.get("domain")}/'
           f'{meta.get("task")}, not {domain}/{task}'
         )
-      valve = (meta.get('task_kwargs') or {}).get('valve')
-      if valve != (task_kwargs or {}).get('valve'):
-        raise DemoError(
-          f'demonstrations in {directory} use valve {valve or "valve3"}'
-        )
+      _check_variant(directory, meta.get('task_kwargs') or {}, task_kwargs)
       if (meta.get('complete') or not complete_only) and len(episode) > 1:
         chosen.append(episode)
   if episodes is not None:

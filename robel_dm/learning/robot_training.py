@@ -70,6 +70,9 @@ FAULTS = (
 ROBOT_AGENTS = ('sac', 'droq', 'sac_demos', 'bc')
 # The learner's value of a safety budget's multiplier.
 _MULTIPLIER = 'train/safety_multiplier'
+# A robot run's budget of safety violations per episode (all kinds summed)
+# unless it names a budget or a penalty: ROBEL-safe episodes.
+ROBOT_SAFETY_BUDGET = 10.0
 
 
 # --- The actor -------------------------------------------------------------
@@ -353,6 +356,23 @@ def _recorded(output: pathlib.Path, config, keys) -> demos.Transitions | None:
     config.task_kwargs,
     complete_only=False,
   )
+
+
+def with_safe_defaults(config: train_lib.RunConfig) -> train_lib.RunConfig:
+  """`config` as `train --device_path` takes it by default: acting through
+  the safe action map unless its task arguments name a map, and, for a
+  SAC agent with neither a safety budget nor a penalty, learning under
+  ROBOT_SAFETY_BUDGET violations per episode."""
+  changes: dict[str, Any] = {
+    'task_kwargs': {'action_map': 'safe', **config.task_kwargs}
+  }
+  if (
+    config.agent.library == agents.SAC_JAX
+    and config.safety_budget is None
+    and not config.safety_penalty
+  ):
+    changes['safety_budget'] = ROBOT_SAFETY_BUDGET
+  return dataclasses.replace(config, **changes)
 
 
 def train_on_robot(

@@ -2,12 +2,13 @@
 
 from collections.abc import Sequence
 import dataclasses
+import json
 import pathlib
 from typing import Any
 
 import numpy as np
 
-from robel_dm.learning import agents
+from robel_dm.learning import agents, run_files
 
 # What --resume may change: the budget and how often it is evaluated.
 RESUMABLE_CHANGES = (
@@ -136,13 +137,44 @@ class RunConfig:
           f'--algo={self.algo}'
         )
     if self.init_from is not None:
-      path = pathlib.Path(self.init_from)
-      checkpoint = path / 'checkpoint.zip' if path.is_dir() else path
+      checkpoint = run_files.init_checkpoint(self.init_from)
       if not checkpoint.is_file():
         raise ValueError(
           f'--init_from={self.init_from}: no saved model there (a run '
           'folder with checkpoint.zip, or such a file)'
         )
+      self._check_source(checkpoint.parent / run_files.CONFIG)
+
+  def _check_source(self, source_config: pathlib.Path) -> None:
+    """Raises ValueError if the run that saved an --init_from model (its
+    settings, when beside it) built other networks than this run's agent
+    builds: loading it would mix the two agents."""
+    if not source_config.is_file():
+      return  # A bare model file: loading it checks what it can.
+    saved = json.loads(source_config.read_text())
+    for option, default in (('valve', 'valve3'), ('action_map', 'robel')):
+      theirs = (saved.get('task_kwargs') or {}).get(option, default)
+      ours = self.task_kwargs.get(option, default)
+      if theirs != ours:
+        raise ValueError(
+          f'--init_from={self.init_from} learned with {option} {theirs}, '
+          f'this run has {ours} (its actions would mean other targets)'
+        )
+    source = agents.get(saved['algo'])
+    hidden = tuple(saved.get('hidden') or source.hidden)
+    agent = self.agent
+    if (source.library, source.network, hidden) != (
+      agent.library,
+      agent.network,
+      self.layers,
+    ):
+      raise ValueError(
+        f'--init_from={self.init_from} was made by --algo={saved["algo"]} '
+        f'(networks {list(hidden)}, {source.network or "plain"}), whose '
+        f'networks --algo={self.algo} does not build '
+        f'({list(self.layers)}, {agent.network or "plain"}): pass '
+        f'--algo={saved["algo"]}'
+      )
 
   def to_json(self) -> dict[str, Any]:
     data = dataclasses.asdict(self)
