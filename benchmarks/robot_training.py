@@ -70,6 +70,8 @@ def _train(device: str, output: pathlib.Path, args, resume: bool):
     '--task=pose_fixed', f'--device_path={device}', f'--steps={args.steps}',
     f'--eval_every={args.eval_every}', f'--eval_episodes={args.eval_episodes}',
     '--stop_at_success=0.8', f'--seed={args.seed}', f'--output_dir={output}',
+    # As measured in docs/robot_training.md: ROBEL's map, no budget.
+    '--algo=sac', '--nosafe_defaults',
   ]  # fmt: skip
   if resume:
     command.append('--resume')
