@@ -2,16 +2,18 @@ r"""Success against safety violations, per safety budget (train
 --safety_budget), on one task.
 
     MUJOCO_GL=egl python benchmarks/safety_frontier.py --task=pose_fixed \
-        --budgets=none,200,50,10 --seeds=0,1,2 [--steps=40000]
+        --budgets=none,200,50,10 --seeds=0,1,2 [--steps=40000] \
+        [--action_map=safe]
 
 Each (budget, seed) is a `train` run of the default agent with that
-`--safety_budget` ('none': no budget), evaluated every `--eval_every` env
-steps on the task's evaluation episodes (one on a Fixed task, whose
-episodes are all the same; 10 otherwise). Printed per run: the last
-evaluation's success and violations per episode (all kinds summed), and
+`--safety_budget` ('none': no budget), acting through `--action_map`
+(ROBEL's map, or the safe one: `task_kwargs` `action_map`), evaluated every
+`--eval_every` env steps on the task's evaluation episodes (one on a Fixed
+task, whose episodes are all the same; 10 otherwise). Printed per run: the
+last evaluation's success and violations per episode (all kinds summed), and
 the first evaluation, if any, that meets ROBEL-safe success: success >= 0.8
-with at most 10 violations per episode. One JSON line per run, also
-appended to OUTPUT/results.jsonl; then per budget the means over seeds.
+with at most 10 violations per episode. One JSON line per run, also appended
+to OUTPUT/results.jsonl; then per budget the means over seeds.
 """
 
 import argparse
@@ -45,8 +47,10 @@ def run(args, budget: float | None, seed: int) -> dict:
     eval_every=args.eval_every,
     eval_episodes=1 if task.endswith('_fixed') else 10,
     safety_budget=budget,
+    task_kwargs={'action_map': args.action_map},
   )
-  name = f'{task}_budget{"none" if budget is None else int(budget)}_{seed}'
+  label = 'none' if budget is None else int(budget)
+  name = f'{task}_{args.action_map}_budget{label}_{seed}'
   directory = pathlib.Path(args.output) / name
   shutil.rmtree(directory, ignore_errors=True)
   start = time.process_time()
@@ -59,6 +63,7 @@ def run(args, budget: float | None, seed: int) -> dict:
   ]
   return {
     'task': args.task,
+    'action_map': args.action_map,
     'budget': budget,
     'seed': seed,
     'env_steps': last['env_steps'],
@@ -76,6 +81,9 @@ def main() -> None:
   parser.add_argument('--seeds', default='0,1,2')
   parser.add_argument('--steps', type=int, default=40_000)
   parser.add_argument('--eval_every', type=int, default=4_000)
+  parser.add_argument(
+    '--action_map', default='robel', choices=('robel', 'safe')
+  )
   parser.add_argument('--output', default=str(ROOT / 'runs/safety_frontier'))
   args = parser.parse_args()
   budgets = [None if b == 'none' else float(b) for b in args.budgets.split(',')]
@@ -89,7 +97,7 @@ def main() -> None:
       print(json.dumps(row), flush=True)
       with open(output / 'results.jsonl', 'a') as file:
         file.write(json.dumps(row) + '\n')
-  print(f'\n{args.task}: last evaluation, mean over seeds')
+  print(f'\n{args.task}, {args.action_map} map: last evaluation, seed mean')
   print('budget  success  violations/episode  seeds safe-solved')
   for budget in budgets:
     mine = [r for r in rows if r['budget'] == budget]
