@@ -384,6 +384,10 @@ def test_safe_solved_runs_are_preferred_on_validation_violations():
   assert selection.safely_solved(fixed)
   # No violations read on validation (and not Fixed): not known safe.
   assert not selection.safely_solved(_row('sac', 0, 1.0, 1.0))
+  # The tables count a record's test episodes: solved, and safely so.
+  assert baselines.solved_safely(_safety(_row('sac', 0, 1.0, 0.9), 0, bar))
+  unsafe = _safety(_row('sac', 0, 1.0, 0.9), 0, bar + 1)
+  assert baselines.solved(unsafe) and not baselines.solved_safely(unsafe)
 
 
 def test_the_chosen_run_is_shipped_when_its_policy_is_at_hand(sandbox):

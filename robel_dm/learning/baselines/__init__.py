@@ -359,6 +359,14 @@ def solved(row: dict) -> bool:
   return row['success'] >= PLAN['solved']
 
 
+def solved_safely(row: dict) -> bool:
+  """Whether a record counts as solved with ROBEL-safe episodes: solved,
+  with at most the plan's safe violations per test episode (all kinds)."""
+  return solved(row) and sum(row['violations'].values()) <= (
+    PLAN['safe_violations']
+  )
+
+
 def shipped_metadata(domain: str, task: str) -> dict | None:
   """The metadata of the task's policy in policies/, if one is there."""
   path = POLICIES / f'{domain}_{task}.npz'

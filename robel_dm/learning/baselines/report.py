@@ -29,6 +29,16 @@ def _violations(row: dict) -> str:
   return ' / '.join(f'{v:.0f}' for v in row['violations'].values())
 
 
+def _mean_violations(group: list[dict]) -> str:
+  """Test violations per episode by kind (position / velocity / current),
+  mean over the group's seeds."""
+  kinds = group[0]['violations']
+  return ' / '.join(
+    f'{statistics.fmean(row["violations"][kind] for row in group):.0f}'
+    for kind in kinds
+  )
+
+
 def _steps(value: float) -> str:
   return '> budget' if value == selection.UNSOLVED else f'{value:,.0f}'
 
@@ -132,17 +142,13 @@ def results_table(rows: list[dict], domain: str) -> str:
     group = list(choice.rows)
     name = task + ('' if valve == 'valve3' else f' ({valve})')
     solved = sum(map(baselines.solved, group))
-    violations = {
-      kind: statistics.fmean(row['violations'][kind] for row in group)
-      for kind in group[0]['violations']
-    }
     shipped = _shipped_cell(dom, task, valve, choice.shipped)
     lines.append(
       f'| {name} | `{choice.algo}`: {choice.why} | {_spread(group)} '
       f'| {solved} of {len(group)} '
       f'| {_steps(selection.median_steps_to_80(group))} '
       f'| {_to_80(group, "wall")} '
-      f'| {" / ".join(f"{v:.0f}" for v in violations.values())} '
+      f'| {_mean_violations(group)} '
       f'| {shipped} |'
     )
   return '\n'.join(lines)
@@ -178,16 +184,19 @@ def summary_table(rows: list[dict]) -> str:
   groups = _by_task_and_agent(rows)
   lines = [
     '| Task | Agent | Budget (env steps; bc: epochs) | Seeds solved '
-    '| Success: mean (lowest-highest) | Env steps to 80% (median) '
+    '(safely) | Success: mean (lowest-highest) | Violations / episode '
+    '(pos / vel / cur) | Env steps to 80% (median) '
     '| Wall min per run (median) | CPU min per run (median) |',
-    '|---|---|---|---|---|---|---|---|',
+    '|---|---|---|---|---|---|---|---|---|',
   ]
   for (name, algo), group in sorted(groups.items()):
     solved = sum(map(baselines.solved, group))
+    safe = sum(map(baselines.solved_safely, group))
     budgets = sorted({row['budget'] for row in group})
     lines.append(
       f'| {name} | {algo} | {", ".join(f"{b:,}" for b in budgets)} '
-      f'| {solved} of {len(group)} | {_spread(group)} '
+      f'| {solved} of {len(group)} ({safe}) | {_spread(group)} '
+      f'| {_mean_violations(group)} '
       f'| {_steps(selection.median_steps_to_80(group))} '
       f'| {statistics.median(r["wall_minutes"] for r in group):.1f} '
       f'| {statistics.median(r["cpu_minutes"] for r in group):.1f} |'
