@@ -885,7 +885,8 @@ def test_the_command_line_applies_the_safe_defaults_on_a_robot(tmp_path, flag):
   result = subprocess.run(
     [sys.executable, '-m', 'robel_dm.commands.train', '--device_path=virtual',
      '--domain=dclaw', '--task=pose_fixed', '--steps=80', '--eval_every=80',
-     '--eval_episodes=1', f'--output_dir={tmp_path}', *([flag] if flag else [])],
+     '--eval_episodes=1', f'--output_dir={tmp_path}',
+     *([flag] if flag else [])],
     capture_output=True, text=True, timeout=300,
     env={**os.environ, 'MUJOCO_GL': 'egl'},
   )  # fmt: skip

@@ -362,9 +362,8 @@ def solved(row: dict) -> bool:
 def solved_safely(row: dict) -> bool:
   """Whether a record counts as solved with ROBEL-safe episodes: solved,
   with at most the plan's safe violations per test episode (all kinds)."""
-  return solved(row) and sum(row['violations'].values()) <= (
-    PLAN['safe_violations']
-  )
+  violations = sum(row['violations'].values())
+  return solved(row) and violations <= PLAN['safe_violations']
 
 
 def shipped_metadata(domain: str, task: str) -> dict | None:
