@@ -72,9 +72,10 @@ def _inject(monkeypatch, on_step) -> list:
   return envs
 
 
-def _count_random_actions(monkeypatch) -> list[int]:
-  """The robot steps at which a run past its learning start draws a
-  random action (it should act with its actor)."""
+def _uniform_action_steps(monkeypatch, *, after_start: bool) -> list[int]:
+  """The robot steps at which a run draws a uniform random action (with
+  `after_start`, only those past its learning start, where it should act
+  with its actor)."""
   steps = []
   episode = robot_training._RobotRun.episode
 
@@ -83,7 +84,7 @@ def _count_random_actions(monkeypatch) -> list[int]:
       self.rng, self.run = rng, run
 
     def uniform(self, *args, **kwargs):
-      if self.run.steps >= self.run.learning_starts:
+      if not after_start or self.run.steps >= self.run.learning_starts:
         steps.append(self.run.steps)
       return self.rng.uniform(*args, **kwargs)
 
@@ -143,7 +144,7 @@ def test_a_run_learns_on_the_bus_records_every_step_and_resumes(
   # --resume refills the replay buffer from the recording and goes on,
   # acting with the restored actor from its first step (never with the
   # random actions of a run that has not started learning).
-  random_steps = _count_random_actions(monkeypatch)
+  random_steps = _uniform_action_steps(monkeypatch, after_start=True)
   more = robot_training.train_on_robot(
     CONFIG.__class__(**{**CONFIG.__dict__, 'steps': steps + 160}),
     VIRTUAL,
@@ -596,31 +597,6 @@ def simulation_run(tmp_path_factory):
   return output
 
 
-def _count_uniform_actions(monkeypatch) -> list[int]:
-  """The robot steps at which a run draws a uniform random action."""
-  steps = []
-  episode = robot_training._RobotRun.episode
-
-  class Watched:
-    def __init__(self, rng, run):
-      self.rng, self.run = rng, run
-
-    def uniform(self, *args, **kwargs):
-      steps.append(self.run.steps)
-      return self.rng.uniform(*args, **kwargs)
-
-    def __getattr__(self, name):
-      return getattr(self.rng, name)
-
-  def watched(run, purpose, policy=None):
-    if not isinstance(run.rng, Watched):
-      run.rng = Watched(run.rng, run)
-    return episode(run, purpose, policy)
-
-  monkeypatch.setattr(robot_training._RobotRun, 'episode', watched)
-  return steps
-
-
 def _observations(episode, keys) -> np.ndarray:
   """An episode's agent vectors, one row per recorded step."""
   return np.concatenate(
@@ -638,7 +614,7 @@ def _observations(episode, keys) -> np.ndarray:
 def test_a_robot_run_acts_with_the_simulation_policy_from_its_first_step(
   tmp_path, monkeypatch, simulation_run
 ):
-  uniform = _count_uniform_actions(monkeypatch)
+  uniform = _uniform_action_steps(monkeypatch, after_start=False)
   config = CONFIG.__class__(
     **{**CONFIG.__dict__, 'steps': 160, 'init_from': str(simulation_run)}
   )
