@@ -71,8 +71,8 @@ ROBOT_AGENTS = ('sac', 'droq', 'sac_demos', 'bc')
 # The learner's value of a safety budget's multiplier.
 _MULTIPLIER = 'train/safety_multiplier'
 # A robot run's budget of safety violations per episode (all kinds summed)
-# unless it names a budget or a penalty: ROBEL-safe episodes.
-ROBOT_SAFETY_BUDGET = 10.0
+# unless it names a budget or a penalty: the constrained agent's.
+ROBOT_SAFETY_BUDGET = agents.get('sac_safe').safety_budget
 
 
 # --- The actor -------------------------------------------------------------
