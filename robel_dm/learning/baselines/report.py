@@ -167,7 +167,7 @@ def _shipped_cell(
     made['algo'],
     made['seed'],
   ):
-    cell += f' (rule: `{rule["algo"]}` seed {rule["seed"]}, being made)'
+    cell += f' (rule: `{rule["algo"]}` seed {rule["seed"]}, not here)'
   return cell
 
 
@@ -307,7 +307,7 @@ def solved_table(rows: list[dict]) -> str:
   tasks += [f'{task} (valve4)' for task in baselines.PLAN['valve4']]
   lines = [
     f'| Task | Solved on {seeds} of {seeds} seeds by '
-    '| Otherwise, best so far |',
+    '| Otherwise, the best agent (success per seed) |',
     '|---|---|---|',
   ]
   for name in sorted(tasks):
@@ -324,7 +324,7 @@ def solved_table(rows: list[dict]) -> str:
         best = ((count, mean), f'`{algo}`: {successes}')
     otherwise = '' if solving else (best[1] if best else 'no run yet')
     lines.append(
-      f'| {name} | {", ".join(solving) or "not yet"} | {otherwise} |'
+      f'| {name} | {", ".join(solving) or "none"} | {otherwise} |'
     )
   return '\n'.join(lines)
 
