@@ -323,7 +323,8 @@ def solved_table(rows: list[dict]) -> str:
         successes = ', '.join(f'{r["success"]:.2f}' for r in group)
         best = ((count, mean), f'`{algo}`: {successes}')
     otherwise = '' if solving else (best[1] if best else 'no run yet')
-    lines.append(f'| {name} | {", ".join(solving) or "not yet"} | {otherwise} |')
+    solvers = ', '.join(solving) or 'not yet'
+    lines.append(f'| {name} | {solvers} | {otherwise} |')
   return '\n'.join(lines)
 
 
