@@ -7,9 +7,13 @@ early stop; one evaluation of 10 episodes every 5,000 steps) under three
 conditions: `random` (Pose Random), `noise` (Pose Random with
 RandomDynamics' observation noise, 0.05) and `random_dynamics` (Pose
 RandomDynamics: that noise and randomized damping, friction loss and servo
-gain per episode). Each run's best and last policies then play 50
-episodes of Pose RandomDynamics and 50 of Pose Random (episode seeds from
-7,000,000, the same for every policy). Printed per run: the training
+gain per episode); with `--conditions=asymmetric,privileged`, Pose
+RandomDynamics by `sac_asymmetric` (its critics also observe the
+episode's randomized dynamics) and by `sac_privileged` (its actor too: a
+ceiling no robot policy can reach). Each run's best and last policies
+then play 50 episodes of Pose RandomDynamics and 50 of Pose Random (episode
+seeds from 7,000,000, the same for every policy; a privileged policy plays
+RandomDynamics only). Printed per run: the training
 curve (success of each evaluation) and, per policy and task, success and
 mean return. One JSON line per run, also appended to
 OUTPUT/results.jsonl.
@@ -25,10 +29,12 @@ import time
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-CONDITIONS = {
-  'random': ('pose_random', {}),
-  'noise': ('pose_random', {'observation_noise': 0.05}),
-  'random_dynamics': ('pose_random_dynamics', {}),
+CONDITIONS = {  # task, its arguments, agent
+  'random': ('pose_random', {}, 'sac'),
+  'noise': ('pose_random', {'observation_noise': 0.05}, 'sac'),
+  'random_dynamics': ('pose_random_dynamics', {}, 'sac'),
+  'asymmetric': ('pose_random_dynamics', {}, 'sac_asymmetric'),
+  'privileged': ('pose_random_dynamics', {}, 'sac_privileged'),
 }
 EPISODES = 50
 EPISODE_SEED = 7_000_000
@@ -38,10 +44,10 @@ def run(condition: str, seed: int, steps: int, output: pathlib.Path) -> dict:
   from robel_dm import evaluation, policies  # noqa: PLC0415
   from robel_dm.learning import training  # noqa: PLC0415
 
-  task, task_kwargs = CONDITIONS[condition]
+  task, task_kwargs, algo = CONDITIONS[condition]
   config = training.RunConfig(
-    domain='dclaw', task=task, task_kwargs=task_kwargs, seed=seed,
-    steps=steps, eval_every=5_000, eval_episodes=10,
+    domain='dclaw', task=task, task_kwargs=task_kwargs, algo=algo,
+    seed=seed, steps=steps, eval_every=5_000, eval_episodes=10,
   )  # fmt: skip
   directory = output / f'{condition}_seed{seed}'
   shutil.rmtree(directory, ignore_errors=True)
@@ -56,11 +62,20 @@ def run(condition: str, seed: int, steps: int, output: pathlib.Path) -> dict:
     file = directory / ('policy_best.npz' if which == 'best' else 'policy.npz')
     # A policy of Pose Random plays Pose RandomDynamics too.
     policy = policies.load(file, any_variant=True)
-    for target in ('pose_random_dynamics', 'pose_random'):
+    # A privileged policy reads what only a RandomDynamics task has.
+    targets = ('pose_random_dynamics',) + (
+      () if policy.privileged else ('pose_random',)
+    )
+    for target in targets:
       results = evaluation.evaluate(
         evaluation.EvalConfig(
-          'dclaw', target, EPISODES, policy=policy, seed=EPISODE_SEED
-        )
+          'dclaw',
+          target,
+          EPISODES,
+          policy=policy,
+          seed=EPISODE_SEED,
+          task_kwargs=policy.task_kwargs_for(None),
+        )  # fmt: skip
       )
       row[f'{which}@{target}'] = {
         'success': results['success_rate'],
@@ -74,7 +89,7 @@ def main() -> None:
   parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
   parser.add_argument('--seeds', default='0')
   parser.add_argument('--steps', type=int, default=60_000)
-  parser.add_argument('--conditions', default=','.join(CONDITIONS))
+  parser.add_argument('--conditions', default='random,noise,random_dynamics')
   parser.add_argument(
     '--output', default=str(ROOT / 'runs/randomdynamics_training')
   )

@@ -286,18 +286,34 @@ class NumpyPolicy:
         f'the policy acts through the {self.action_map} action map, not '
         f'{given} (leave action_map out to use its own)'
       )
+    given = (task_kwargs or {}).get('privileged')
+    if given is not None and bool(given) != self.privileged:
+      raise PolicyError(
+        f'the policy {"reads" if self.privileged else "does not read"} the '
+        f'privileged observation, not privileged={given} (leave privileged '
+        'out)'
+      )
 
   @property
   def action_map(self) -> str:
     """The action map the policy learned through ('robel' or 'safe')."""
     return self.metadata.get('task_kwargs', {}).get('action_map', 'robel')
 
+  @property
+  def privileged(self) -> bool:
+    """Whether the policy reads the task's privileged observation (what
+    only a simulation knows): a ceiling, not a policy for a robot."""
+    return bool(self.metadata.get('task_kwargs', {}).get('privileged'))
+
   def task_kwargs_for(self, task_kwargs: dict | None) -> dict:
-    """`task_kwargs` with the policy's action map where they name none:
-    a policy acts through the map it learned with."""
+    """`task_kwargs` with the policy's action map and privileged
+    observation where they name none: a policy acts through the map it
+    learned with, on the observation it learned from."""
     task_kwargs = dict(task_kwargs or {})
     if self.action_map != 'robel':
       task_kwargs.setdefault('action_map', self.action_map)
+    if self.privileged:
+      task_kwargs.setdefault('privileged', True)
     return task_kwargs
 
 
@@ -448,9 +464,11 @@ def _task_sizes(domain: str, task: str, task_kwargs) -> tuple:
     if 'keyword argument' not in str(error):
       raise
     raise ValueError(f'bad task_kwargs for {domain}/{task}: {error}') from None
-  keys = instance.agent_observation_keys
-  size = sum(instance.FEATURES[key] for key in keys)
-  return keys, size, len(instance.robot.actuators)
+  return (
+    instance.agent_observation_keys,
+    instance.agent_observation_size,
+    len(instance.robot.actuators),
+  )
 
 
 def check_file(
@@ -491,7 +509,9 @@ def check_file(
   policy = load(path, any_variant)
   try:
     policy.check_task(domain, task, task_kwargs)
-    keys, observation_size, action_size = _task_sizes(domain, task, task_kwargs)
+    keys, observation_size, action_size = _task_sizes(
+      domain, task, policy.task_kwargs_for(task_kwargs)
+    )
     _check_sizes(
       policy, f'{domain}/{task}', keys, observation_size, action_size
     )

@@ -126,6 +126,16 @@ class DynamicsRandomizer:
     self._ranges = ranges
     self._targets = targets
     self._nominal = None
+    self._draws = np.zeros(0)
+
+  @property
+  def draws(self) -> np.ndarray:
+    """The episode's draws, each scaled to [-1, 1] over its range (a view,
+    rewritten by `apply`): damping, friction loss, servo gain, contact
+    friction, mount offset and total mass, those randomized, in that order
+    (colour is left out: it changes nothing the physics sees). What a
+    privileged observer knows and a policy on a robot does not."""
+    return self._draws
 
   @property
   def ranges(self) -> DynamicsRanges:
@@ -162,6 +172,42 @@ class DynamicsRandomizer:
       'body_mass': model.body_mass.copy(),
       'body_inertia': model.body_inertia.copy(),
     }
+    self._draws = np.zeros(self.draw_count)
+
+  @property
+  def draw_count(self) -> int:
+    """The size of `draws`."""
+    return sum(size for _, size in self._drawn_quantities())
+
+  def _drawn_quantities(self) -> list[tuple[str, int]]:
+    """(`DynamicsRanges` field, number of draws) of what `draws` holds."""
+    ranges = self._ranges
+    n_dofs = len(self._targets.joints)
+    sizes = {
+      'damping': 1 if ranges.damping_shared else n_dofs,
+      'friction_loss': 1 if ranges.friction_loss_shared else n_dofs,
+      'actuator_kp': 1,
+      'geom_friction': 3,
+      'mount_offset': 3 if self._targets.mount is not None else 0,
+      'total_mass': 1,
+    }
+    return [
+      (name, size)
+      for name, size in sizes.items()
+      if getattr(ranges, name) is not None and size
+    ]
+
+  def _record_draws(self, drawn: dict[str, np.ndarray]) -> None:
+    """Writes `draws`: each drawn value scaled to [-1, 1] over its range."""
+    offset = 0
+    for name, size in self._drawn_quantities():
+      span = getattr(self._ranges, name)
+      low, high = np.asarray(span.low, float), np.asarray(span.high, float)
+      width = np.where(high > low, high - low, 1.0)
+      self._draws[offset : offset + size] = (
+        2.0 * (drawn[name] - low) / width - 1.0
+      )
+      offset += size
 
   def apply(
     self, physics: mjcf.Physics, random_state: np.random.RandomState
@@ -172,28 +218,31 @@ class DynamicsRandomizer:
     model = physics.model
     ranges = self._ranges
     n_dofs = len(self._dofs)
+    drawn = {}
     if ranges.damping is not None:
       size = None if ranges.damping_shared else n_dofs
-      model.dof_damping[self._dofs] = ranges.damping.sample(random_state, size)
+      drawn['damping'] = ranges.damping.sample(random_state, size)
+      model.dof_damping[self._dofs] = drawn['damping']
     if ranges.friction_loss is not None:
       size = None if ranges.friction_loss_shared else n_dofs
-      model.dof_frictionloss[self._dofs] = ranges.friction_loss.sample(
-        random_state, size
-      )
+      drawn['friction_loss'] = ranges.friction_loss.sample(random_state, size)
+      model.dof_frictionloss[self._dofs] = drawn['friction_loss']
     if ranges.actuator_kp is not None:
       # A position servo's force is kp * (ctrl - q): gain and bias together.
-      kp = ranges.actuator_kp.sample(random_state)
+      kp = drawn['actuator_kp'] = ranges.actuator_kp.sample(random_state)
       model.actuator_gainprm[self._actuators, 0] = kp
       model.actuator_biasprm[self._actuators, 1] = -kp
     if ranges.geom_friction is not None:
-      factor = ranges.geom_friction.sample(random_state) / REFERENCE_FRICTION
+      drawn['geom_friction'] = ranges.geom_friction.sample(random_state)
+      factor = drawn['geom_friction'] / REFERENCE_FRICTION
       np.multiply(
         self._nominal['geom_friction'], factor, out=model.geom_friction
       )
     if ranges.mount_offset is not None and self._mount is not None:
-      model.body_pos[self._mount] = self._nominal['body_pos'][
-        self._mount
-      ] + ranges.mount_offset.sample(random_state, 3)
+      drawn['mount_offset'] = ranges.mount_offset.sample(random_state, 3)
+      model.body_pos[self._mount] = (
+        self._nominal['body_pos'][self._mount] + drawn['mount_offset']
+      )
     if ranges.color is not None and len(self._colored):
       model.geom_rgba[self._colored, :3] = ranges.color.sample(
         random_state, (len(self._colored), 3)
@@ -202,10 +251,12 @@ class DynamicsRandomizer:
       # mj_setTotalmass scales the current masses: start from nominal.
       model.body_mass[:] = self._nominal['body_mass']
       model.body_inertia[:] = self._nominal['body_inertia']
-      mujoco.mj_setTotalmass(model.ptr, ranges.total_mass.sample(random_state))
+      drawn['total_mass'] = ranges.total_mass.sample(random_state)
+      mujoco.mj_setTotalmass(model.ptr, drawn['total_mass'])
       # Derived constants (dof_invweight0, body_subtreemass, ...) are stale
       # until recomputed.
       mujoco.mj_setConst(model.ptr, physics.data.ptr)
+    self._record_draws(drawn)
 
 
 def noise_halfwidths(widths, fraction: float) -> np.ndarray:

@@ -145,8 +145,7 @@ def test_a_policy_is_evaluated_through_the_map_it_learned_with(tmp_path):
   safe = evaluate(_slamming_policy(tmp_path, 'safe'))
   assert safe['task_kwargs'] == {'action_map': 'safe'}
   assert lines == [
-    'the policy acts through the safe action map (its training task '
-    'option): evaluating with it'
+    'the policy learned with task option action_map=safe: evaluating with it'
   ]
   assert sum(safe['safety'].values()) == 0
   robel = evaluate(_slamming_policy(tmp_path, 'robel'))

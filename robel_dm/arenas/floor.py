@@ -8,6 +8,10 @@ from robel_dm import assets, environment, randomization
 
 # ROBEL's terrain: every heightfield cell is drawn from this range, m.
 TERRAIN_HEIGHT = randomization.Range(0.0, 0.05)
+# The terrain a privileged observer sees: the cells of a square of
+# TERRAIN_PATCH x TERRAIN_PATCH around a point (the D'Kitty's torso), about
+# 0.5 m across with ROBEL's 7.6 cm cells: the ground under all four feet.
+TERRAIN_PATCH = 7
 
 
 class KittyFloor(composer.Arena):
@@ -56,6 +60,14 @@ class KittyFloor(composer.Arena):
     start = int(hfield.adr)
     size = int(hfield.nrow) * int(hfield.ncol)
     self._heights = physics.model.hfield_data[start : start + size]  # A view.
+    self._grid = self._heights.reshape(int(hfield.nrow), int(hfield.ncol))
+    # Heightfield rows run along y, columns along x, over +-size.
+    self._cells_per_m = (np.array([hfield.ncol, hfield.nrow]) - 1) / (
+      2 * hfield.size[:2]
+    )
+    self._half_size = np.array(hfield.size[:2])
+    half = TERRAIN_PATCH // 2
+    self._patch_offsets = np.arange(-half, half + 1)
 
   def regenerate(
     self, physics: mjcf.Physics, random_state: np.random.RandomState
@@ -75,6 +87,25 @@ class KittyFloor(composer.Arena):
           contexts.mujoco.ptr,
           self._hfield_id,
         )
+
+  def terrain_around(self, xy) -> np.ndarray:
+    """The heights of the `TERRAIN_PATCH`^2 cells around the floor point
+    `xy` (m, world), scaled to [-1, 1] over ROBEL's range; rows along y.
+
+    Raises:
+      ValueError: on an arena without terrain.
+    """
+    if self._hfield is None:
+      raise ValueError('this floor has no terrain')
+    column, row = np.rint(
+      (np.asarray(xy[:2]) + self._half_size) * self._cells_per_m
+    ).astype(int)
+    # Past the field's edge (4.5 m out) the edge cells stand in.
+    rows = np.clip(row + self._patch_offsets, 0, self._grid.shape[0] - 1)
+    columns = np.clip(column + self._patch_offsets, 0, self._grid.shape[1] - 1)
+    heights = self._grid[np.ix_(rows, columns)].ravel()
+    low, high = TERRAIN_HEIGHT.low, TERRAIN_HEIGHT.high
+    return 2.0 * (heights - low) / (high - low) - 1.0
 
   @property
   def terrain_heights(self) -> np.ndarray | None:

@@ -217,9 +217,9 @@ def _checked_policy(config: EvalConfig) -> policies.Policy | None:
 def _with_policy_action_map(
   config: EvalConfig, checked: policies.Policy | None
 ) -> EvalConfig:
-  """`config` with the checked policy file's action map, if it learned
-  through another than ROBEL's and the task arguments name none (said in
-  the log)."""
+  """`config` with the checked policy file's action map (if it learned
+  through another than ROBEL's) and privileged observation (if it reads
+  it), where the task arguments name none (said in the log)."""
   task_kwargs_for = getattr(checked, 'task_kwargs_for', None)
   if task_kwargs_for is None:
     return config
@@ -227,10 +227,13 @@ def _with_policy_action_map(
   if task_kwargs == dict(config.task_kwargs or {}):
     return config
   if config.log is not None:
-    config.log(
-      f'the policy acts through the {task_kwargs["action_map"]} action '
-      'map (its training task option): evaluating with it'
-    )
+    given = config.task_kwargs or {}
+    for option, value in task_kwargs.items():
+      if option not in given:
+        config.log(
+          f'the policy learned with task option {option}={value}: '
+          'evaluating with it'
+        )
   return dataclasses.replace(config, task_kwargs=task_kwargs)
 
 

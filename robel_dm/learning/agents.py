@@ -43,6 +43,9 @@ SAC_JAX, SAC_TORCH, PPO_TORCH, TRPO_TORCH, IMITATION_JAX = (
   'sb3_contrib_trpo',
   'imitation',
 )
+# What a privileged agent's networks observe beyond a robot's observation
+# (the task's `privileged` observation: randomized dynamics, terrain).
+PRIVILEGED_ACTOR, PRIVILEGED_CRITIC = 'actor', 'critic'
 OFF_POLICY, ON_POLICY, IMITATION, DEMO_AUGMENTED = (
   'off-policy',
   'on-policy',
@@ -74,6 +77,11 @@ class Agent:
     starts_from: in the baseline table, the variant whose run of the same
       seed (by `sac`) it starts from ('random': a RandomDynamics task's
       Random variant); None: from scratch.
+    privileged: on a RandomDynamics task, which networks also observe the
+      task's privileged observation (what only a simulation knows):
+      PRIVILEGED_ACTOR, actor and critics (a ceiling for any policy a
+      robot can run); PRIVILEGED_CRITIC, the critics only (an asymmetric
+      actor-critic: the actor sees what a robot gives); None: neither.
   """
 
   name: str
@@ -88,6 +96,7 @@ class Agent:
   network: dict[str, Any] = dataclasses.field(default_factory=dict)
   safety_budget: float | None = None
   starts_from: str | None = None
+  privileged: str | None = None
 
 
 # SAC's usual settings (256 x 256, learning rate 3e-4, one update per env
@@ -210,6 +219,31 @@ AGENTS: dict[str, Agent] = {
       starts_from='random',
     ),
     Agent(
+      'sac_privileged',
+      OFF_POLICY,
+      'SAC',
+      'sbx-rl 0.28.0 SAC (JAX), learning rate 1e-3, actor and critics '
+      "observing the episode's randomized dynamics and terrain (simulation "
+      'only: a ceiling)',
+      (256, 256),
+      _SAC,
+      replay=True,
+      library=SAC_JAX,
+      privileged=PRIVILEGED_ACTOR,
+    ),
+    Agent(
+      'sac_asymmetric',
+      OFF_POLICY,
+      'SAC',
+      'sbx-rl 0.28.0 SAC (JAX), learning rate 1e-3, critics observing the '
+      "episode's randomized dynamics and terrain, the actor not",
+      (256, 256),
+      _SAC,
+      replay=True,
+      library=SAC_JAX,
+      privileged=PRIVILEGED_CRITIC,
+    ),
+    Agent(
       'sac_demos',
       DEMO_AUGMENTED,
       'DAPG',
@@ -300,16 +334,23 @@ def _library_class(library: str):
 def build(
   agent: Agent, env, seed: int, hidden: tuple[int, ...], buffer_size: int
 ):
-  """A new model of `agent` learning on the vectorized `env`."""
+  """A new model of `agent` learning on the vectorized `env` (whose
+  observation ends with the privileged one if `agent.privileged`)."""
   cls = _library_class(agent.library)
   kwargs = dict(agent.hyperparameters)
   if agent.replay:
     kwargs['buffer_size'] = max(buffer_size, 1)
+  policy_kwargs = {'net_arch': list(hidden), **agent.network}
+  if agent.privileged == PRIVILEGED_CRITIC:
+    privileged = env.get_attr('privileged_size')[0]
+    policy_kwargs['actor_class'] = cls.prefix_actor(
+      env.observation_space.shape[0] - privileged
+    )
   return cls(
     'MlpPolicy',
     env,
     seed=seed,
-    policy_kwargs={'net_arch': list(hidden), **agent.network},
+    policy_kwargs=policy_kwargs,
     verbose=0,
     **kwargs,
   )

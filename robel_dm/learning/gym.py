@@ -129,7 +129,10 @@ class RobelEnv(gymnasium.Env):
     task_ = self._env.task
     self._keys = task_.agent_observation_keys
     spec = self._env.observation_spec()
-    size = sum(int(np.prod(spec[key].shape)) for key in self._keys)
+    sizes = {key: int(np.prod(spec[key].shape)) for key in self._keys}
+    size = sum(sizes.values())
+    # The privileged observation (`TaskOptions.privileged`) comes last.
+    self.privileged_size = sizes.get(base.PRIVILEGED, 0)
     self.observation_space = spaces.Box(
       -np.inf, np.inf, shape=(size,), dtype=np.float32
     )

@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from robel_dm import suite
 from robel_dm.learning import agents, run_files
 
 # What --resume may change: the budget and how often it is evaluated.
@@ -84,6 +85,23 @@ class RunConfig:
     return self.agent.safety_budget
 
   @property
+  def policy_task_kwargs(self) -> dict[str, Any]:
+    """The task's arguments as the policy sees the task (evaluations, the
+    saved policy): with the privileged observation if its agent's actor
+    observes it."""
+    if self.agent.privileged == agents.PRIVILEGED_ACTOR:
+      return {**self.task_kwargs, 'privileged': True}
+    return dict(self.task_kwargs)
+
+  @property
+  def training_task_kwargs(self) -> dict[str, Any]:
+    """The task's arguments as training sees it: with the privileged
+    observation if its agent's actor or critics observe it."""
+    if self.agent.privileged is not None:
+      return {**self.task_kwargs, 'privileged': True}
+    return dict(self.task_kwargs)
+
+  @property
   def layers(self) -> tuple[int, ...]:
     return tuple(self.hidden) or self.agent.hidden
 
@@ -117,6 +135,13 @@ class RunConfig:
       raise ValueError(f'--algo={self.algo} does not use --demos')
     if self.demo_episodes < 1:
       raise ValueError('demo_episodes must be >= 1')
+    if (
+      agent.privileged and (self.domain, self.task) not in suite.RANDOM_DYNAMICS
+    ):
+      raise ValueError(
+        f'--algo={self.algo} observes the randomized dynamics: it needs a '
+        f'RandomDynamics task, not {self.domain}/{self.task}'
+      )
 
   def _check_sac_options(self) -> None:
     sac_agent = self.agent.library == agents.SAC_JAX

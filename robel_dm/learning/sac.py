@@ -25,17 +25,50 @@ Relabelling at sampling time means every stored transition is priced at
 the current multiplier, not at the one it was collected under.
 """
 
+import functools
+
 import numpy as np
 
 from robel_dm.learning import actor, extra
 from robel_dm.learning.safety import SafetyConstraint, step_violations
 
 try:
+  import flax.linen as nn
+  import jax.numpy as jnp
   import sbx
+  from sbx.common.distributions import TanhTransformedDistribution
+  from sbx.common.policies import SquashedGaussianActor
   from sbx.common.type_aliases import ReplayBufferSamplesNp
   from sbx.sac.policies import SACPolicy
+  from tensorflow_probability.substrates import jax as tfp
 except ImportError as error:  # The optional learn extra.
   raise extra.missing(error) from error
+
+
+class PrefixActor(SquashedGaussianActor):
+  """sbx's actor, seeing only the first `observed` observation entries.
+
+  The critics see the whole observation, which ends with what only a
+  simulation knows (an asymmetric actor-critic); the actor's first layer
+  takes the robot's share, so the trained actor runs on a robot.
+  """
+
+  observed: int = 0
+
+  @nn.compact
+  def __call__(self, x: jnp.ndarray):
+    x = x[..., : self.observed]
+    for n_units in self.net_arch:
+      x = self.activation_fn(nn.Dense(n_units)(x))
+    mean = nn.Dense(self.action_dim)(x)
+    log_std = jnp.clip(
+      nn.Dense(self.action_dim)(x), self.log_std_min, self.log_std_max
+    )
+    return TanhTransformedDistribution(
+      tfp.distributions.MultivariateNormalDiag(
+        loc=mean, scale_diag=jnp.exp(log_std)
+      )
+    )
 
 
 class NumpyActingPolicy(SACPolicy):
@@ -47,6 +80,9 @@ class NumpyActingPolicy(SACPolicy):
     self.rng = np.random.default_rng(0)
     self._actor: actor.StochasticActor | None = None
     self._actor_of = None
+    # A `PrefixActor` acts on the first `observed` entries; else all.
+    keywords = getattr(self.actor_class, 'keywords', {})
+    self.observed: int | None = keywords.get('observed')
 
   def numpy_actor(self) -> actor.StochasticActor:
     """The current actor in numpy (read again after each update)."""
@@ -59,6 +95,8 @@ class NumpyActingPolicy(SACPolicy):
 
   def _predict(self, observation, deterministic: bool = False):
     observation = np.asarray(observation, np.float32)
+    if self.observed is not None:
+      observation = observation[..., : self.observed]
     if deterministic:
       return self.numpy_actor().mean(observation)
     return self.numpy_actor().sample(observation, self.rng)
@@ -75,6 +113,12 @@ class SAC(sbx.SAC):
   policy_aliases = {'MlpPolicy': NumpyActingPolicy}  # noqa: RUF012
   # Set after building or loading to learn under a safety budget.
   safety: SafetyConstraint | None = None
+
+  @staticmethod
+  def prefix_actor(observed: int):
+    """The `actor_class` of a policy whose actor sees the first `observed`
+    observation entries (`PrefixActor`)."""
+    return functools.partial(PrefixActor, observed=observed)
 
   def set_random_seed(self, seed: int | None) -> None:
     super().set_random_seed(seed)

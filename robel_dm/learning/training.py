@@ -102,7 +102,7 @@ def make_env(config: RunConfig, index: int) -> TrainingEnv:
   env = robel_gym.RobelEnv(
     config.domain,
     config.task,
-    task_kwargs=config.task_kwargs,
+    task_kwargs=config.training_task_kwargs,
     seed=config.seed * 1000 + index,
   )
   return TrainingEnv(env, config.safety_penalty)
@@ -110,13 +110,14 @@ def make_env(config: RunConfig, index: int) -> TrainingEnv:
 
 def metadata_of(config: RunConfig) -> dict[str, Any]:
   """What a saved policy records about its training."""
-  env = suite.load(config.domain, config.task, task_kwargs=config.task_kwargs)
+  task_kwargs = config.policy_task_kwargs
+  env = suite.load(config.domain, config.task, task_kwargs=task_kwargs)
   keys = list(env.task.agent_observation_keys)
   env.close()
   return {
     'domain': config.domain,
     'task': config.task,
-    'task_kwargs': dict(config.task_kwargs),
+    'task_kwargs': task_kwargs,
     'observation_keys': keys,
     'algo': config.algo,
     'seed': config.seed,
@@ -149,7 +150,7 @@ class Evaluations:
         config.domain,
         config.task,
         seed=_eval_seed(config),
-        task_kwargs=config.task_kwargs,
+        task_kwargs=config.policy_task_kwargs,
       )
       self._provenance = provenance.describe()
     return self._env, self._provenance
@@ -177,7 +178,7 @@ def evaluate_policy(
       episodes,
       policy=policy,
       seed=_eval_seed(config),
-      task_kwargs=config.task_kwargs,
+      task_kwargs=config.policy_task_kwargs,
     ),
     env=env,
     provenance_record=record,

@@ -16,7 +16,7 @@ currents, a goal display, tracked targets) it asks of its `RobotIO`.
 """
 
 import collections
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 import dataclasses
 import math
 from typing import Any
@@ -35,6 +35,8 @@ SCORE = 'score'
 SUCCESS = 'success'
 SAFETY = 'safety'
 REWARD_TERMS = 'reward_terms'
+# The observation `TaskOptions.privileged` appends to the agent's.
+PRIVILEGED = 'privileged'
 
 # Order of the counters in the `safety` observation.
 SAFETY_FIELDS = ('position', 'velocity', 'current')
@@ -99,6 +101,10 @@ class Scene:
     extra_velocity_widths: velocity-range widths of those joints, rad/s.
     randomizer_targets: elements dynamics randomization acts on.
     root_joint: the free joint of a free-floating robot, or None.
+    privileged_state: what the scene adds to a privileged observation
+      (`TaskOptions.privileged`) after the randomized dynamics, e.g. the
+      terrain under the D'Kitty; None: nothing.
+    privileged_size: the size of what `privileged_state` returns.
   """
 
   arena: composer.Arena
@@ -110,6 +116,8 @@ class Scene:
   extra_velocity_widths: tuple[float, ...] = ()
   randomizer_targets: randomization.Targets | None = None
   root_joint: mjcf.Element | None = None
+  privileged_state: Callable[[], np.ndarray] | None = None
+  privileged_size: int = 0
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -132,6 +140,10 @@ class TaskOptions:
       'safe' keeps the targets inside the safety counters' position bounds
       and moves them no faster than their speed limit (`ActionMap`), so
       that a policy cannot drive a joint into a counted violation.
+    privileged: append the `PRIVILEGED` observation to the agent's: the
+      episode's randomized dynamics (`DynamicsRandomizer.draws`) and what
+      the scene adds (the terrain under the D'Kitty). Only a simulation
+      knows these: for privileged agents (a ceiling) and critics.
   """
 
   dynamics: randomization.DynamicsRanges | None = None
@@ -140,6 +152,7 @@ class TaskOptions:
   action_bounds: str = 'raise'
   reward: Any = None
   action_map: str = 'robel'
+  privileged: bool = False
 
 
 class RobelTask(composer.Task):
@@ -192,6 +205,11 @@ class RobelTask(composer.Task):
     if scene.episode_steps <= 0:
       raise ValueError(f'episode_steps must be positive: {scene.episode_steps}')
     keys = self._checked_keys(options.observation_keys)
+    if options.privileged and options.dynamics is None:
+      raise ValueError(
+        'privileged observations need randomized dynamics (a '
+        'RandomDynamics task)'
+      )
     robot = scene.robot
     self._arena = scene.arena
     self._robot = robot
@@ -213,9 +231,13 @@ class RobelTask(composer.Task):
       self._randomizer = randomization.DynamicsRandomizer(
         options.dynamics, scene.randomizer_targets or randomization.Targets()
       )
+    self._scene_privileged_state = scene.privileged_state
+    self._scene_privileged_size = scene.privileged_size
 
     self._allocate_state(robot, observation_noise)
     self._make_observables(keys)
+    if options.privileged:
+      self._add_privileged_observable()
 
   def _checked_keys(self, observation_keys) -> tuple[str, ...]:
     """The agent's observation keys: the given ones or the task's default,
@@ -300,6 +322,19 @@ class RobelTask(composer.Task):
     terms.enabled = False
     self._task_observables[REWARD_TERMS] = terms
 
+  def _add_privileged_observable(self) -> None:
+    """The `PRIVILEGED` observation, last in the agent's."""
+    privileged = observable.Generic(lambda physics: self._privileged_state())
+    privileged.enabled = True
+    self._task_observables[PRIVILEGED] = privileged
+    self._agent_keys += (PRIVILEGED,)
+
+  def _privileged_state(self) -> np.ndarray:
+    parts = [self._randomizer.draws]
+    if self._scene_privileged_state is not None:
+      parts.append(self._scene_privileged_state())
+    return np.concatenate(parts)
+
   def feature_span(self, first: str, last: str) -> np.ndarray:
     """A writable view of the features from `first` to `last` (FEATURES
     order), for the code that fills them (the task, or parts it is built
@@ -342,6 +377,15 @@ class RobelTask(composer.Task):
   def agent_observation_keys(self) -> tuple[str, ...]:
     """Names of the observations the agent sees, in flattening order."""
     return self._agent_keys
+
+  @property
+  def agent_observation_size(self) -> int:
+    """The size of the agent's flattened observation (known before the
+    model compiles)."""
+    size = sum(self.FEATURES.get(key, 0) for key in self._agent_keys)
+    if PRIVILEGED in self._agent_keys:
+      size += self._randomizer.draw_count + self._scene_privileged_size
+    return size
 
   @property
   def episode_steps(self) -> int:

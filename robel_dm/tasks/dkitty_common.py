@@ -229,7 +229,15 @@ class KittyParts:
         joints=robot.joints, actuators=robot.actuators
       ),
       root_joint=self.scene.root_joint,
+      privileged_state=self.terrain_under_torso
+      if self.arena.has_terrain
+      else None,
+      privileged_size=floor.TERRAIN_PATCH**2 if self.arena.has_terrain else 0,
     )
+
+  def terrain_under_torso(self) -> np.ndarray:
+    """The terrain around the torso (`KittyFloor.terrain_around`)."""
+    return self.arena.terrain_around(self.torso.position)
 
   def bind_features(self, task) -> None:
     """Takes the task's torso and leg feature views, which `update` fills."""
