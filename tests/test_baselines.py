@@ -343,6 +343,16 @@ def test_the_agent_and_run_are_chosen_on_validation_not_test():
   assert selection.choose(low).shipped is None
 
 
+def test_an_agent_reading_privileged_state_is_never_recommended():
+  by_agent = {
+    'sac': [_row('sac', s, v, 0.8) for s, v in enumerate((0.9, 0.5, 0.5))],
+    'sac_privileged': [_row('sac_privileged', s, 1.0, 1.0) for s in range(3)],
+  }
+  choice = selection.choose(by_agent)
+  assert choice.algo == 'sac' and choice.shipped['seed'] == 0
+  assert choice.why == 'solves 1 of 3 seeds on validation (the only agent run)'
+
+
 def _safety(row, validation_violations, test_violations=0.0):
   """`row` with its validation and test violations per episode."""
   row['validation']['violations'] = {

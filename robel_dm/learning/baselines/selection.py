@@ -14,7 +14,7 @@ import math
 import pathlib
 import statistics
 
-from robel_dm.learning import baselines
+from robel_dm.learning import agents, baselines
 
 # A median over seeds where an unsolved seed counts as "more than the
 # budget": infinity sorts after every number.
@@ -115,13 +115,23 @@ def _merit(group: list[dict], seeds: int) -> tuple:
   )
 
 
+def for_robots(algo: str) -> bool:
+  """Whether `algo`'s policies run on a robot: not those whose actor reads
+  what only a simulation knows (a ceiling, never recommended)."""
+  agent = agents.AGENTS.get(algo)
+  return agent is None or agent.privileged != agents.PRIVILEGED_ACTOR
+
+
 def choose(by_agent: dict[str, list[dict]]) -> Choice:
-  """The task's recommended agent (best `_merit`) and the run shipped: its
-  seed solved safely, then with the highest validation success, then
-  validation score, if that is solved on validation."""
+  """The task's recommended agent (best `_merit` of those `for_robots`) and
+  the run shipped: its seed solved safely, then with the highest
+  validation success, then validation score, if that is solved on
+  validation."""
   seeds = len(baselines.PLAN['seeds'])
   ranked = sorted(
-    by_agent, key=lambda algo: _merit(by_agent[algo], seeds), reverse=True
+    filter(for_robots, by_agent),
+    key=lambda algo: _merit(by_agent[algo], seeds),
+    reverse=True,
   )
   algo, group = ranked[0], by_agent[ranked[0]]
   best = max(
