@@ -25,6 +25,7 @@ import dm_env
 import numpy as np
 
 from robel_dm import assets, npz_files, registry, suite
+from robel_dm.tasks import base
 
 Policy = Callable[[dm_env.TimeStep], np.ndarray]
 
@@ -273,25 +274,14 @@ class NumpyPolicy:
         f'the policy was trained on {trained[0]}/{trained[1]}, not '
         f'{domain}/{task}{hint}'
       )
-    trained_valve = self.metadata.get('task_kwargs', {}).get('valve')
-    valve = (task_kwargs or {}).get('valve')
-    if trained_valve != valve:
+    # The policy's own action map and privileged observation are adopted
+    # where the task arguments name none; its valve must be the task's.
+    for option, theirs, ours in base.interface_differences(
+      self.metadata.get('task_kwargs'), self.task_kwargs_for(task_kwargs)
+    ):
+      hint = '' if option == 'valve' else f' (leave {option} out)'
       raise PolicyError(
-        f'the policy was trained with valve {trained_valve or "valve3"}, '
-        f'not {valve or "valve3"}'
-      )
-    given = (task_kwargs or {}).get('action_map')
-    if given is not None and given != self.action_map:
-      raise PolicyError(
-        f'the policy acts through the {self.action_map} action map, not '
-        f'{given} (leave action_map out to use its own)'
-      )
-    given = (task_kwargs or {}).get('privileged')
-    if given is not None and bool(given) != self.privileged:
-      raise PolicyError(
-        f'the policy {"reads" if self.privileged else "does not read"} the '
-        f'privileged observation, not privileged={given} (leave privileged '
-        'out)'
+        f'the policy was trained with {option} {theirs}, not {ours}{hint}'
       )
 
   @property

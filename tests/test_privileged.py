@@ -187,7 +187,9 @@ def test_trained_policy_reads_what_its_actor_saw(tmp_path, algo):
   assert (adopted in lines) == policy.privileged
   assert results['episodes'] == 1 or results['success_rate'] >= 0
   if policy.privileged:
-    with pytest.raises(policies.PolicyError, match='reads the privileged'):
+    with pytest.raises(
+      policies.PolicyError, match='trained with privileged True, not False'
+    ):
       evaluation.evaluate(
         evaluation.EvalConfig(
           'dclaw', 'pose_random_dynamics', 1,

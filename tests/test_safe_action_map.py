@@ -151,5 +151,7 @@ def test_a_policy_is_evaluated_through_the_map_it_learned_with(tmp_path):
   robel = evaluate(_slamming_policy(tmp_path, 'robel'))
   assert sum(robel['safety'].values()) > 0
   assert len(lines) == 1  # ROBEL's map is the default: nothing to say.
-  with pytest.raises(policies.PolicyError, match='acts through the safe'):
+  with pytest.raises(
+    policies.PolicyError, match='trained with action_map safe, not robel'
+  ):
     evaluate(_slamming_policy(tmp_path, 'safe'), {'action_map': 'robel'})

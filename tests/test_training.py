@@ -276,7 +276,9 @@ def test_demonstrations_load_as_aligned_transitions(pose_demos):
   with pytest.raises(demos.DemoError, match='21 asked'):
     demos.load(pose_demos, 'dclaw', 'pose_fixed', tuple(keys), episodes=21)
   # Their actions are ROBEL's map's targets, not the safe map's.
-  with pytest.raises(demos.DemoError, match='through the robel action map'):
+  with pytest.raises(
+    demos.DemoError, match='made with action_map robel, not safe'
+  ):
     demos.load(pose_demos, 'dclaw', 'pose_fixed', tuple(keys),
                task_kwargs={'action_map': 'safe'})  # fmt: skip
 

@@ -11,6 +11,7 @@ import pathlib
 import numpy as np
 
 from robel_dm import recording
+from robel_dm.tasks import base
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,19 +69,13 @@ class DemoError(ValueError):
 
 
 def _check_variant(directory, recorded: dict, task_kwargs: dict | None) -> None:
-  """Raises DemoError unless a recording's valve and action map are the
-  run's (an action means another joint target through another map)."""
-  task_kwargs = task_kwargs or {}
-  valve = recorded.get('valve')
-  if valve != task_kwargs.get('valve'):
+  """Raises DemoError unless the recording was made under the run's
+  interface options (`base.INTERFACE_OPTIONS`: another valve or action map
+  gives an action another meaning)."""
+  for option, theirs, ours in base.interface_differences(recorded, task_kwargs):
     raise DemoError(
-      f'demonstrations in {directory} use valve {valve or "valve3"}'
-    )
-  action_map = recorded.get('action_map', 'robel')
-  if action_map != task_kwargs.get('action_map', 'robel'):
-    raise DemoError(
-      f'demonstrations in {directory} act through the {action_map} action '
-      f'map, not the {task_kwargs.get("action_map", "robel")} one'
+      f'demonstrations in {directory} were made with {option} {theirs}, '
+      f'not {ours}'
     )
 
 

@@ -10,6 +10,7 @@ import numpy as np
 
 from robel_dm import suite
 from robel_dm.learning import agents, run_files
+from robel_dm.tasks import base
 
 # What --resume may change: the budget and how often it is evaluated.
 RESUMABLE_CHANGES = (
@@ -177,14 +178,13 @@ class RunConfig:
     if not source_config.is_file():
       return  # A bare model file: loading it checks what it can.
     saved = json.loads(source_config.read_text())
-    for option, default in (('valve', 'valve3'), ('action_map', 'robel')):
-      theirs = (saved.get('task_kwargs') or {}).get(option, default)
-      ours = self.task_kwargs.get(option, default)
-      if theirs != ours:
-        raise ValueError(
-          f'--init_from={self.init_from} learned with {option} {theirs}, '
-          f'this run has {ours} (its actions would mean other targets)'
-        )
+    for option, theirs, ours in base.interface_differences(
+      saved.get('task_kwargs'), self.task_kwargs
+    ):
+      raise ValueError(
+        f'--init_from={self.init_from} learned with {option} {theirs}, '
+        f'this run has {ours} (its networks would mean something else)'
+      )
     source = agents.get(saved['algo'])
     hidden = tuple(saved.get('hidden') or source.hidden)
     agent = self.agent

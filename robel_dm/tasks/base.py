@@ -120,6 +120,33 @@ class Scene:
   privileged_size: int = 0
 
 
+# Task options that fix what an action means (the valve's shape, the action
+# map) or what the agent observes (the privileged observation), with their
+# defaults: a policy, demonstrations or networks made under one value do not
+# fit a task under another.
+INTERFACE_OPTIONS = {
+  'valve': 'valve3',
+  'action_map': 'robel',
+  'privileged': False,
+}
+
+
+def interface_differences(
+  made_with: Mapping[str, Any] | None, task_kwargs: Mapping[str, Any] | None
+) -> list[tuple[str, Any, Any]]:
+  """The `INTERFACE_OPTIONS` whose values differ between the task arguments
+  something was made with and a task's: (option, made with, the task's),
+  defaults filled in."""
+  made_with, task_kwargs = made_with or {}, task_kwargs or {}
+  differences = []
+  for option, default in INTERFACE_OPTIONS.items():
+    theirs = made_with.get(option, default)
+    ours = task_kwargs.get(option, default)
+    if theirs != ours:
+      differences.append((option, theirs, ours))
+  return differences
+
+
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class TaskOptions:
   """What a user chooses of any task: the keywords every task factory
