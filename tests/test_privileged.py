@@ -197,3 +197,13 @@ def test_trained_policy_reads_what_its_actor_saw(tmp_path, algo):
           task_kwargs={'privileged': False},
         )
       )  # fmt: skip
+
+
+def test_a_policy_saved_before_the_prefix_actor_existed_still_acts():
+  # Pickled SAC policies of older runs have no `observed`; a resumed run
+  # must act with them as before.
+  model, env = _model('sac')
+  del model.policy.__dict__['observed']
+  observation = env.reset()
+  assert model.predict(observation, deterministic=True)[0].shape == (1, 9)
+  env.close()

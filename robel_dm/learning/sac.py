@@ -74,15 +74,18 @@ class PrefixActor(SquashedGaussianActor):
 class NumpyActingPolicy(SACPolicy):
   """sbx's SAC policy, acting with its actor in numpy."""
 
+  # A `PrefixActor` acts on the first `observed` entries; None: on all
+  # (also the value of a policy saved before this attribute existed).
+  observed: int | None = None
+
   def __init__(self, *args, **kwargs):
     super().__init__(*args, **kwargs)
     # Seeded by `SAC.set_random_seed`.
     self.rng = np.random.default_rng(0)
     self._actor: actor.StochasticActor | None = None
     self._actor_of = None
-    # A `PrefixActor` acts on the first `observed` entries; else all.
     keywords = getattr(self.actor_class, 'keywords', {})
-    self.observed: int | None = keywords.get('observed')
+    self.observed = keywords.get('observed')
 
   def numpy_actor(self) -> actor.StochasticActor:
     """The current actor in numpy (read again after each update)."""
