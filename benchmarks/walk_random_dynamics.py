@@ -20,38 +20,15 @@ run here on purpose.
 
 import argparse
 
+import randomdynamics_parts  # Beside this file.
 import walk_random_targets  # Beside this file.
 
-from robel_dm import constants, policies, randomization
+from robel_dm import policies, randomization
 
 _SEED = 6_000_000
-_RANGES = randomization.DKITTY_LOCOMOTION
-CONDITIONS = {
-  'plain': {},
-  'terrain': {'terrain': True},
-  'dynamics': {'dynamics': _RANGES},
-  'noise': {'observation_noise': constants.OBSERVATION_NOISE_FRACTION},
-  'all': {
-    'terrain': True,
-    'dynamics': _RANGES,
-    'observation_noise': constants.OBSERVATION_NOISE_FRACTION,
-  },
-  # The randomized physics one quantity at a time.
-  **{
-    name: {
-      'dynamics': randomization.DynamicsRanges(
-        **{field: getattr(_RANGES, field) for field in fields}
-      )
-    }
-    for name, fields in (
-      ('damping', ('damping', 'damping_shared')),
-      ('friction_loss', ('friction_loss', 'friction_loss_shared')),
-      ('gain', ('actuator_kp',)),
-      ('contact_friction', ('geom_friction',)),
-      ('mass', ('total_mass',)),
-    )
-  },
-}
+CONDITIONS = randomdynamics_parts.conditions(
+  randomization.DKITTY_LOCOMOTION, terrain=True
+)
 
 
 def run(policy: policies.NumpyPolicy, condition: str, count: int) -> dict:

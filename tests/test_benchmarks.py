@@ -79,3 +79,33 @@ def test_every_candidate_setting_is_accepted_by_the_agent(benchmarks):
   for name, (hidden, hyperparameters) in agent_settings.SETTINGS.items():
     assert set(hyperparameters) <= accepted, name
     assert all(isinstance(width, int) for width in hidden), name
+
+
+@pytest.mark.parametrize(
+  'domain, family, alone',
+  [
+    ('dclaw', 'pose', {'damping', 'friction_loss', 'gain'}),
+    ('dclaw', 'turn', {'damping', 'friction_loss', 'gain',
+                       'contact_friction', 'mount'}),
+    ('dkitty', 'walk', {'damping', 'friction_loss', 'gain',
+                        'contact_friction', 'mass', 'terrain'}),
+  ],
+)  # fmt: skip
+def test_randomdynamics_parts_takes_the_task_apart(
+  benchmarks, domain, family, alone
+):
+  from robel_dm import suite  # noqa: PLC0415
+
+  parts = benchmarks('randomdynamics_parts')
+  task = suite.load(domain, f'{family}_random_dynamics').task
+  table = parts.conditions(task.dynamics, terrain=domain == 'dkitty')
+  assert set(table) == {'plain', 'noise', 'dynamics', 'all'} | alone
+  # 'all' is the RandomDynamics task: its ranges, noise and terrain.
+  every = suite.load(domain, f'{family}_random', task_kwargs=table['all'])
+  assert every.task.dynamics == task.dynamics
+  assert every.task.observation_noise == task.observation_noise
+  assert every.task.arena.has_terrain if domain == 'dkitty' else True
+  # A quantity alone randomizes that quantity and nothing else.
+  gain = table['gain']['dynamics']
+  assert gain.actuator_kp == task.dynamics.actuator_kp
+  assert gain.damping is None and gain.geom_friction is None
