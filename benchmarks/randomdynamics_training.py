@@ -10,7 +10,9 @@ RandomDynamics: that noise and randomized damping, friction loss and servo
 gain per episode); with `--conditions=asymmetric,privileged`, Pose
 RandomDynamics by `sac_asymmetric` (its critics also observe the
 episode's randomized dynamics) and by `sac_privileged` (its actor too: a
-ceiling no robot policy can reach). Each run's best and last policies
+ceiling no robot policy can reach); with `--conditions=curriculum`, by
+`sac_curriculum` (the randomization grows from none to ROBEL's over the
+first half of the run). Each run's best and last policies
 then play 50 episodes of Pose RandomDynamics and 50 of Pose Random (episode
 seeds from 7,000,000, the same for every policy; a privileged policy plays
 RandomDynamics only). Printed per run: the training
@@ -35,6 +37,7 @@ CONDITIONS = {  # task, its arguments, agent
   'random_dynamics': ('pose_random_dynamics', {}, 'sac'),
   'asymmetric': ('pose_random_dynamics', {}, 'sac_asymmetric'),
   'privileged': ('pose_random_dynamics', {}, 'sac_privileged'),
+  'curriculum': ('pose_random_dynamics', {}, 'sac_curriculum'),
 }
 EPISODES = 50
 EPISODE_SEED = 7_000_000

@@ -127,6 +127,28 @@ class DynamicsRandomizer:
     self._targets = targets
     self._nominal = None
     self._draws = np.zeros(0)
+    self._scale = 1.0
+
+  @property
+  def scale(self) -> float:
+    """How far each episode's physics is from the nominal robot's: 1 (the
+    default) applies the draws, 0 the nominal values, between them the
+    same fraction of each draw's distance from nominal (a curriculum over
+    the ranges). The draws themselves do not depend on it."""
+    return self._scale
+
+  @scale.setter
+  def scale(self, value: float) -> None:
+    if not 0.0 <= value <= 1.0:
+      raise ValueError(f'randomization scale must be in [0, 1], got {value}')
+    self._scale = float(value)
+
+  def _toward_nominal(self, drawn, nominal):
+    """`drawn` moved to `scale` of its distance from `nominal` (exactly
+    `drawn` at scale 1)."""
+    if self._scale == 1.0:
+      return drawn
+    return nominal + self._scale * (np.asarray(drawn) - nominal)
 
   @property
   def draws(self) -> np.ndarray:
@@ -219,30 +241,38 @@ class DynamicsRandomizer:
     ranges = self._ranges
     n_dofs = len(self._dofs)
     drawn = {}
+    nominal = self._nominal
     if ranges.damping is not None:
       size = None if ranges.damping_shared else n_dofs
       drawn['damping'] = ranges.damping.sample(random_state, size)
-      model.dof_damping[self._dofs] = drawn['damping']
+      model.dof_damping[self._dofs] = self._toward_nominal(
+        drawn['damping'], nominal['dof_damping'][self._dofs]
+      )
     if ranges.friction_loss is not None:
       size = None if ranges.friction_loss_shared else n_dofs
       drawn['friction_loss'] = ranges.friction_loss.sample(random_state, size)
-      model.dof_frictionloss[self._dofs] = drawn['friction_loss']
+      model.dof_frictionloss[self._dofs] = self._toward_nominal(
+        drawn['friction_loss'], nominal['dof_frictionloss'][self._dofs]
+      )
     if ranges.actuator_kp is not None:
       # A position servo's force is kp * (ctrl - q): gain and bias together.
-      kp = drawn['actuator_kp'] = ranges.actuator_kp.sample(random_state)
+      drawn['actuator_kp'] = ranges.actuator_kp.sample(random_state)
+      kp = self._toward_nominal(
+        drawn['actuator_kp'], nominal['gainprm'][self._actuators, 0]
+      )
       model.actuator_gainprm[self._actuators, 0] = kp
       model.actuator_biasprm[self._actuators, 1] = -kp
     if ranges.geom_friction is not None:
       drawn['geom_friction'] = ranges.geom_friction.sample(random_state)
-      factor = drawn['geom_friction'] / REFERENCE_FRICTION
-      np.multiply(
-        self._nominal['geom_friction'], factor, out=model.geom_friction
+      factor = self._toward_nominal(
+        drawn['geom_friction'] / REFERENCE_FRICTION, 1.0
       )
+      np.multiply(nominal['geom_friction'], factor, out=model.geom_friction)
     if ranges.mount_offset is not None and self._mount is not None:
       drawn['mount_offset'] = ranges.mount_offset.sample(random_state, 3)
-      model.body_pos[self._mount] = (
-        self._nominal['body_pos'][self._mount] + drawn['mount_offset']
-      )
+      model.body_pos[self._mount] = nominal['body_pos'][
+        self._mount
+      ] + self._toward_nominal(drawn['mount_offset'], 0.0)
     if ranges.color is not None and len(self._colored):
       model.geom_rgba[self._colored, :3] = ranges.color.sample(
         random_state, (len(self._colored), 3)
@@ -252,7 +282,12 @@ class DynamicsRandomizer:
       model.body_mass[:] = self._nominal['body_mass']
       model.body_inertia[:] = self._nominal['body_inertia']
       drawn['total_mass'] = ranges.total_mass.sample(random_state)
-      mujoco.mj_setTotalmass(model.ptr, drawn['total_mass'])
+      mujoco.mj_setTotalmass(
+        model.ptr,
+        self._toward_nominal(
+          drawn['total_mass'], float(np.sum(nominal['body_mass']))
+        ),
+      )
       # Derived constants (dof_invweight0, body_subtreemass, ...) are stale
       # until recomputed.
       mujoco.mj_setConst(model.ptr, physics.data.ptr)

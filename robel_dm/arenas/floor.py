@@ -36,6 +36,10 @@ class KittyFloor(composer.Arena):
       self._hfield.remove()
       self._hfield = None
 
+  # The share of ROBEL's bump height the terrain gets (1: all of it; a
+  # curriculum raises it from 0), set by `RobelTask.set_randomization_scale`.
+  randomization_scale = 1.0
+
   @property
   def has_terrain(self) -> bool:
     return self._terrain
@@ -76,6 +80,8 @@ class KittyFloor(composer.Arena):
     if self._hfield is None:
       return
     self._heights[:] = TERRAIN_HEIGHT.sample(random_state, self._heights.size)
+    if self.randomization_scale != 1.0:
+      self._heights *= self.randomization_scale
     # A renderer keeps its own copy of the heightfield: refresh it if one
     # exists (without making one).
     contexts = environment.existing_render_contexts(physics)

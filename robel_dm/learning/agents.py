@@ -82,6 +82,11 @@ class Agent:
       PRIVILEGED_ACTOR, actor and critics (a ceiling for any policy a
       robot can run); PRIVILEGED_CRITIC, the critics only (an asymmetric
       actor-critic: the actor sees what a robot gives); None: neither.
+    curriculum: on a RandomDynamics task, the share of the run's budget
+      over which its training episodes' randomization grows from the
+      nominal robot to the task's ranges
+      (`RobelTask.set_randomization_scale`); None: the task's ranges from
+      the start.
   """
 
   name: str
@@ -97,6 +102,7 @@ class Agent:
   safety_budget: float | None = None
   starts_from: str | None = None
   privileged: str | None = None
+  curriculum: float | None = None
 
 
 # SAC's usual settings (256 x 256, learning rate 3e-4, one update per env
@@ -242,6 +248,19 @@ AGENTS: dict[str, Agent] = {
       replay=True,
       library=SAC_JAX,
       privileged=PRIVILEGED_CRITIC,
+    ),
+    Agent(
+      'sac_curriculum',
+      OFF_POLICY,
+      'SAC',
+      'sbx-rl 0.28.0 SAC (JAX), learning rate 1e-3, its training '
+      "episodes' randomization growing from the nominal robot to the "
+      "task's ranges over the first half of the budget",
+      (256, 256),
+      _SAC,
+      replay=True,
+      library=SAC_JAX,
+      curriculum=0.5,
     ),
     Agent(
       'sac_demos',

@@ -226,6 +226,10 @@ class RobelEnv(gymnasium.Env):
     height, width = self._render_size
     return self._env.physics.render(height=height, width=width)
 
+  def set_randomization_scale(self, scale: float) -> None:
+    """See `RobelTask.set_randomization_scale`."""
+    self._env.task.set_randomization_scale(scale)
+
   def close(self):
     self._env.close()
 

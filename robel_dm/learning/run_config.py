@@ -136,11 +136,10 @@ class RunConfig:
       raise ValueError(f'--algo={self.algo} does not use --demos')
     if self.demo_episodes < 1:
       raise ValueError('demo_episodes must be >= 1')
-    if (
-      agent.privileged and (self.domain, self.task) not in suite.RANDOM_DYNAMICS
-    ):
+    randomized = (self.domain, self.task) in suite.RANDOM_DYNAMICS
+    if (agent.privileged or agent.curriculum) and not randomized:
       raise ValueError(
-        f'--algo={self.algo} observes the randomized dynamics: it needs a '
+        f'--algo={self.algo} works on the randomized dynamics: it needs a '
         f'RandomDynamics task, not {self.domain}/{self.task}'
       )
 

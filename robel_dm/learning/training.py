@@ -544,6 +544,11 @@ def _reinforce(config: RunConfig, run: Run, data, metadata, resume) -> None:
     run.record(agents.numpy_policy(model, metadata), 0)
   while model.num_timesteps < steps:
     chunk = min(eval_every, steps - model.num_timesteps)
+    if agent.curriculum:
+      vec_env.env_method(
+        'set_randomization_scale',
+        curriculum_scale(agent.curriculum, model.num_timesteps, steps),
+      )
     model.learn(chunk, reset_num_timesteps=False)
     model.save(str(checkpoint))
     if agent.replay:
@@ -554,6 +559,13 @@ def _reinforce(config: RunConfig, run: Run, data, metadata, resume) -> None:
     if run.solved(row):
       break
   vec_env.close()
+
+
+def curriculum_scale(share: float, done: int, steps: int) -> float:
+  """The randomization scale of a curriculum over the first `share` of a
+  run of `steps` env steps, `done` of them made: rising linearly from 0
+  to 1, then 1."""
+  return min(1.0, done / (share * steps))
 
 
 def _new_model(config: RunConfig, vec_env, data):

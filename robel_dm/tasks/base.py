@@ -432,6 +432,23 @@ class RobelTask(composer.Task):
   def dynamics(self) -> randomization.DynamicsRanges | None:
     return self._randomizer.ranges if self._randomizer else None
 
+  def set_randomization_scale(self, scale: float) -> None:
+    """Moves the episodes' randomized physics (and the D'Kitty's terrain)
+    to `scale` of their distance from the nominal robot, from the next
+    reset on: 1 is the task as defined, 0 the nominal robot on flat ground
+    (a curriculum over the randomization; noise is left as it is). The
+    random draws, and so the episodes' other randomness, do not change.
+
+    Raises:
+      ValueError: if `scale` is outside [0, 1] or the task randomizes no
+        physics.
+    """
+    if self._randomizer is None:
+      raise ValueError(f'{type(self).__name__} randomizes no physics')
+    self._randomizer.scale = scale
+    if hasattr(self._arena, 'randomization_scale'):
+      self._arena.randomization_scale = self._randomizer.scale
+
   @property
   def observation_noise(self) -> float:
     return self._observation_noise
