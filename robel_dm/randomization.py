@@ -152,7 +152,8 @@ class DynamicsRandomizer:
 
   @property
   def draws(self) -> np.ndarray:
-    """The episode's draws, each scaled to [-1, 1] over its range (a view,
+    """The episode's draws (as drawn: before `scale` moves them toward
+    nominal), each scaled to [-1, 1] over its range (a view,
     rewritten by `apply`): damping, friction loss, servo gain, contact
     friction, mount offset and total mass, those randomized, in that order
     (colour is left out: it changes nothing the physics sees). What a
