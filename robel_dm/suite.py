@@ -131,12 +131,17 @@ def load(
     A `dm_env.Environment` (a `composer.Environment`).
 
   Raises:
-    ValueError: for an unknown domain, task or task argument, or a `robot`
-      that is not a `RobotOptions`.
+    ValueError: for an unknown domain, task or task argument, a `robot`
+      that is not a `RobotOptions`, or privileged observations on a robot.
     calibration.CalibrationError: for a malformed calibration or one of
       another robot.
   """
   tasks = _checked_task(domain, task, task_kwargs)
+  if robot is not None and (task_kwargs or {}).get('privileged'):
+    raise ValueError(
+      'privileged observations are what only a simulation knows: a robot '
+      'gives none (a policy that reads them cannot run on a robot)'
+    )
 
   def make_task() -> base.RobelTask:
     try:

@@ -207,3 +207,12 @@ def test_a_policy_saved_before_the_prefix_actor_existed_still_acts():
   observation = env.reset()
   assert model.predict(observation, deterministic=True)[0].shape == (1, 9)
   env.close()
+
+
+def test_no_robot_gives_privileged_observations(tmp_path):
+  # Refused before any bus is opened: the device path does not exist.
+  with pytest.raises(ValueError, match='a robot gives none'):
+    suite.load(
+      'dclaw', 'pose_random_dynamics', task_kwargs={'privileged': True},
+      robot=suite.RobotOptions(str(tmp_path / 'no_such_device')),
+    )  # fmt: skip
