@@ -15,6 +15,13 @@ from a named library (or, for behaviour cloning, this package):
 |             |                 | in its replay buffer                     |
 | `droq`      | off-policy      | sbx `SAC`, DroQ critics (dropout, layer  |
 |             |                 | norm), 10 updates per env step           |
+| `sac_safe`  | off-policy      | `sac` under a safety budget, through the |
+|             |                 | safe action map (in the baseline plan)   |
+| `sac_warm`  | off-policy      | `sac` from the Random variant's networks |
+| `sac_asymmetric` | off-policy | `sac`, critics observing the privileged  |
+|             |                 | state (RandomDynamics)                   |
+| `sac_privileged` | off-policy | `sac`, actor and critics observing it    |
+| `sac_curriculum` | off-policy | `sac`, randomization grown by degrees    |
 
 `sac` is the default: the fastest way to ROBEL's success found on two CPU
 cores (benchmarks/training_speed.py measures it against `sac_sb3`, SB3's
