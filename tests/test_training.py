@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import pathlib
 import pickle
 
 import numpy as np
@@ -446,3 +447,11 @@ def test_a_safety_budget_learns_a_price_per_violation(tmp_path):
   assert model.safety.multiplier > 0.0
   saved = json.loads((tmp_path / 'safe' / 'config.json').read_text())
   assert saved['safety_budget'] == 0.0
+
+
+@pytest.mark.parametrize('name', sorted(agents.AGENTS))
+def test_every_agent_is_documented(name):
+  root = pathlib.Path(__file__).resolve().parents[1]
+  table = (root / 'docs' / 'baselines.md').read_text()
+  assert f'| `{name}` ' in table  # A row of the agents' table.
+  assert f'| `{name}` ' in agents.__doc__
