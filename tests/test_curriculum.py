@@ -80,9 +80,7 @@ def test_curriculum_agent_needs_a_randomized_task():
 
 
 @pytest.mark.slow
-def test_curriculum_run_sets_the_scale_before_each_chunk(
-  tmp_path, monkeypatch
-):
+def test_curriculum_run_sets_the_scale_before_each_chunk(tmp_path, monkeypatch):
   seen = []
   original = robel_gym.RobelEnv.set_randomization_scale
 
