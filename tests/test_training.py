@@ -452,6 +452,6 @@ def test_a_safety_budget_learns_a_price_per_violation(tmp_path):
 @pytest.mark.parametrize('name', sorted(agents.AGENTS))
 def test_every_agent_is_documented(name):
   root = pathlib.Path(__file__).resolve().parents[1]
-  table = (root / 'docs' / 'baselines.md').read_text()
+  table = (root / 'docs/baselines.md').read_text()
   assert f'| `{name}` ' in table  # A row of the agents' table.
   assert f'| `{name}` ' in agents.__doc__
