@@ -513,6 +513,16 @@ def test_a_recorded_run_chosen_by_name_says_so_and_force_makes_it_again(
 def test_a_queue_takes_its_share_and_bad_selections_are_refused(sandbox):
   with pytest.raises(ValueError, match='no run of the table matches'):
     baselines.select('nothing_*')
+  with pytest.raises(ValueError, match="matches 'nothing_\\*'"):
+    baselines.select('dclaw_pose_fixed_*,nothing_*')
+  # Several patterns: the runs of any, in plan order, each once.
+  names = [run.name for run in baselines.runs()]
+  first, last = names[0], names[-1]
+  chosen = baselines.select(f'{last},{first},{first[:-1]}*')
+  assert [run.name for run in chosen] == [
+    name for name in names if name in (first, last) or name[:-1] == first[:-1]
+  ]
+  assert chosen[0].name == first and chosen[-1].name == last
   assert cli.main(['train', '--queue=2', '--queues=2']) == 2
 
 

@@ -19,7 +19,11 @@ def main(argv: list[str] | None = None) -> int:
   train_parser = commands.add_parser('train', help='run the table')
   train_parser.add_argument('--queue', type=int, default=0)
   train_parser.add_argument('--queues', type=int, default=1)
-  train_parser.add_argument('--only', default=None, help='fnmatch pattern')
+  train_parser.add_argument(
+    '--only',
+    default=None,
+    help='fnmatch patterns of run names, comma-separated (any of them)',
+  )
   train_parser.add_argument('--hours', type=float, default=None)
   train_parser.add_argument('--ray_address', default=None)
   train_parser.add_argument(

@@ -4,7 +4,8 @@ r"""The baseline table: its runs, how to run them, and its report.
     robel-baselines train --queue=0 --queues=2 &
     robel-baselines train --queue=1 --queues=2 &
     robel-baselines train --ray_address=auto
-    # One run, or a selection (fnmatch patterns on the run names):
+    # One run, or a selection (fnmatch patterns on the run names,
+    # comma-separated):
     robel-baselines train --only='dclaw_pose_*'
     # docs/baselines.json, docs/baselines.md's table and one figure per task:
     robel-baselines report
@@ -205,13 +206,20 @@ def _also_runs() -> list[Run]:
 
 
 def select(pattern: str | None) -> list[Run]:
+  """The plan's runs whose names match `pattern`: fnmatch patterns,
+  comma-separated (any of them), in plan order; all runs if None.
+
+  Raises:
+    ValueError: naming a pattern that matches no run.
+  """
   table = runs()
   if not pattern:
     return table
-  chosen = [r for r in table if fnmatch.fnmatch(r.name, pattern)]
-  if not chosen:
-    raise ValueError(f'no run of the table matches {pattern!r}')
-  return chosen
+  patterns = [part for part in pattern.split(',') if part]
+  for part in patterns:
+    if not any(fnmatch.fnmatch(r.name, part) for r in table):
+      raise ValueError(f'no run of the table matches {part!r}')
+  return [r for r in table if any(fnmatch.fnmatch(r.name, p) for p in patterns)]
 
 
 def evaluations(run: Run) -> list[dict]:
