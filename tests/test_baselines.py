@@ -456,9 +456,10 @@ def test_the_report_is_derived_from_the_records(sandbox):
   assert (baselines.FIGURES / 'dclaw_pose_random.png').is_file()
   # The status counts and the solved-by table come from the records too.
   assert 'holds 2 records (0 of them runs outside the plan' in text
-  assert '| dkitty/walk_random | not yet | no run yet |' in text
+  assert '| dkitty/walk_random | none | no run |' in text
   assert '| dclaw/pose_fixed |' in text.split('<!-- solved -->')[1]
-  assert '| dclaw/turn_random (valve4) | not yet | no run yet |' in text
+  assert '| dclaw/turn_random (valve4) | none | no run |' in text
+  assert '| dkitty/walk_random_dynamics | none | no run |' in text
 
 
 @pytest.mark.slow

@@ -303,12 +303,16 @@ def remaining(rows: list[dict]) -> str:
 
 
 def solved_table(rows: list[dict]) -> str:
-  """Per Fixed and Random task (the valve tasks on the 4-prong valve too):
-  the agents that solve it on every seed of the plan, or the best any
-  agent has done."""
+  """Per task (the valve tasks on the 4-prong valve too): the agents whose
+  policies run on a robot that solve it on every seed of the plan, or the
+  best any of them has done."""
   seeds = len(baselines.PLAN['seeds'])
-  groups = _by_task_and_agent(rows)
-  tasks = [f'{domain}/{task}' for domain, task in suite.FIXED + suite.RANDOM]
+  groups = {
+    key: group
+    for key, group in _by_task_and_agent(rows).items()
+    if selection.for_robots(key[1])
+  }
+  tasks = [f'{domain}/{task}' for domain, task in suite.ALL_TASKS]
   tasks += [f'{task} (valve4)' for task in baselines.PLAN['valve4']]
   lines = [
     f'| Task | Solved on {seeds} of {seeds} seeds by '
@@ -327,8 +331,8 @@ def solved_table(rows: list[dict]) -> str:
       elif best is None or (count, mean) > best[0]:
         successes = ', '.join(f'{r["success"]:.2f}' for r in group)
         best = ((count, mean), f'`{algo}`: {successes}')
-    otherwise = '' if solving else (best[1] if best else 'no run yet')
-    solvers = ', '.join(solving) or 'not yet'
+    otherwise = '' if solving else (best[1] if best else 'no run')
+    solvers = ', '.join(solving) or 'none'
     lines.append(f'| {name} | {solvers} | {otherwise} |')
   return '\n'.join(lines)
 
