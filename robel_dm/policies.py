@@ -303,7 +303,9 @@ class NumpyPolicy:
     if self.action_map != 'robel':
       task_kwargs.setdefault('action_map', self.action_map)
     if self.privileged:
-      task_kwargs.setdefault('privileged', True)
+      task_kwargs.setdefault(
+        'privileged', self.metadata['task_kwargs']['privileged']
+      )
     return task_kwargs
 
 

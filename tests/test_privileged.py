@@ -90,6 +90,24 @@ def test_dkitty_sees_the_terrain_under_its_torso():
   env.close()
 
 
+def test_dynamics_only_leaves_the_terrain_out():
+  env = suite.load(
+    'dkitty', 'stand_random_dynamics', task_kwargs={'privileged': 'dynamics'}
+  )
+  everything = suite.load(
+    'dkitty', 'stand_random_dynamics', task_kwargs={'privileged': True}
+  )
+  # Damping, friction loss, gain, contact friction (3), total mass.
+  assert env.reset().observation['privileged'].shape == (7,)
+  assert everything.task.agent_observation_size == (
+    env.task.agent_observation_size + floor.TERRAIN_PATCH**2
+  )
+  with pytest.raises(ValueError, match='privileged must be one of'):
+    suite.load(
+      'dkitty', 'stand_random_dynamics', task_kwargs={'privileged': 'all'}
+    )
+
+
 def test_privileged_observation_needs_randomized_dynamics():
   with pytest.raises(ValueError, match='need randomized dynamics'):
     suite.load('dclaw', 'pose_random', task_kwargs={'privileged': True})
@@ -112,7 +130,8 @@ def test_which_env_reads_the_privileged_observation():
     _config('sac_privileged'),
     _config('sac'),
   )
-  assert asymmetric.training_task_kwargs == {'privileged': True}
+  # The asymmetric critics see the dynamics, not the terrain.
+  assert asymmetric.training_task_kwargs == {'privileged': 'dynamics'}
   assert asymmetric.policy_task_kwargs == {}
   assert privileged.training_task_kwargs == {'privileged': True}
   assert privileged.policy_task_kwargs == {'privileged': True}

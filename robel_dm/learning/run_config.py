@@ -90,16 +90,18 @@ class RunConfig:
     """The task's arguments as the policy sees the task (evaluations, the
     saved policy): with the privileged observation if its agent's actor
     observes it."""
-    if self.agent.privileged == agents.PRIVILEGED_ACTOR:
-      return {**self.task_kwargs, 'privileged': True}
+    agent = self.agent
+    if agent.privileged == agents.PRIVILEGED_ACTOR:
+      return {**self.task_kwargs, 'privileged': agent.privileged_view}
     return dict(self.task_kwargs)
 
   @property
   def training_task_kwargs(self) -> dict[str, Any]:
     """The task's arguments as training sees it: with the privileged
     observation if its agent's actor or critics observe it."""
-    if self.agent.privileged is not None:
-      return {**self.task_kwargs, 'privileged': True}
+    agent = self.agent
+    if agent.privileged is not None:
+      return {**self.task_kwargs, 'privileged': agent.privileged_view}
     return dict(self.task_kwargs)
 
   @property

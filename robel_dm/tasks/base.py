@@ -35,8 +35,10 @@ SCORE = 'score'
 SUCCESS = 'success'
 SAFETY = 'safety'
 REWARD_TERMS = 'reward_terms'
-# The observation `TaskOptions.privileged` appends to the agent's.
+# The observation `TaskOptions.privileged` appends to the agent's, and the
+# option's values: none, everything, the randomized dynamics only.
 PRIVILEGED = 'privileged'
+PRIVILEGED_CHOICES = (False, True, 'dynamics')
 
 # Order of the counters in the `safety` observation.
 SAFETY_FIELDS = ('position', 'velocity', 'current')
@@ -167,10 +169,12 @@ class TaskOptions:
       'safe' keeps the targets inside the safety counters' position bounds
       and moves them no faster than their speed limit (`ActionMap`), so
       that a policy cannot drive a joint into a counted violation.
-    privileged: append the `PRIVILEGED` observation to the agent's: the
-      episode's randomized dynamics (`DynamicsRandomizer.draws`) and what
-      the scene adds (the terrain under the D'Kitty). Only a simulation
-      knows these: for privileged agents (a ceiling) and critics.
+    privileged: append the `PRIVILEGED` observation to the agent's: True,
+      the episode's randomized dynamics (`DynamicsRandomizer.draws`) and
+      what the scene adds (the terrain under the D'Kitty); 'dynamics', the
+      randomized dynamics only; False (default), nothing. Only a
+      simulation knows these: for privileged agents (a ceiling) and
+      critics.
   """
 
   dynamics: randomization.DynamicsRanges | None = None
@@ -179,7 +183,7 @@ class TaskOptions:
   action_bounds: str = 'raise'
   reward: Any = None
   action_map: str = 'robel'
-  privileged: bool = False
+  privileged: bool | str = False
 
 
 class RobelTask(composer.Task):
@@ -232,6 +236,11 @@ class RobelTask(composer.Task):
     if scene.episode_steps <= 0:
       raise ValueError(f'episode_steps must be positive: {scene.episode_steps}')
     keys = self._checked_keys(options.observation_keys)
+    if options.privileged not in PRIVILEGED_CHOICES:
+      raise ValueError(
+        f'privileged must be one of {PRIVILEGED_CHOICES}, got '
+        f'{options.privileged!r}'
+      )
     if options.privileged and options.dynamics is None:
       raise ValueError(
         'privileged observations need randomized dynamics (a '
@@ -258,8 +267,12 @@ class RobelTask(composer.Task):
       self._randomizer = randomization.DynamicsRandomizer(
         options.dynamics, scene.randomizer_targets or randomization.Targets()
       )
-    self._scene_privileged_state = scene.privileged_state
-    self._scene_privileged_size = scene.privileged_size
+    # The scene's share (the terrain) only with privileged=True.
+    with_scene = options.privileged is True
+    self._scene_privileged_state = (
+      scene.privileged_state if with_scene else None
+    )
+    self._scene_privileged_size = scene.privileged_size if with_scene else 0
 
     self._allocate_state(robot, observation_noise)
     self._make_observables(keys)
