@@ -1,5 +1,6 @@
-"""A curriculum over the randomization (`set_randomization_scale`) and the
-agent that trains with it (`sac_curriculum`).
+"""A curriculum over the randomization (`set_randomization_scale`); the
+agent that trains with it (`sac_curriculum`) is tested in
+test_randomdynamics_agents.py.
 
 Nominal values are the model's (ROBEL's D'Claw: damping 0.1, servo gain
 2; D'Kitty: damping 1.0, gain 5); expected values are computed from them.
@@ -9,8 +10,6 @@ import numpy as np
 import pytest
 
 from robel_dm import suite
-from robel_dm.learning import gym as robel_gym
-from robel_dm.learning import run_config, training
 
 pytestmark = pytest.mark.filterwarnings('ignore::DeprecationWarning')
 
@@ -63,36 +62,3 @@ def test_scale_is_checked():
     env.task.set_randomization_scale(1.5)
   with pytest.raises(ValueError, match='randomizes no physics'):
     suite.load('dclaw', 'pose_random').task.set_randomization_scale(0.5)
-
-
-def test_curriculum_rises_over_its_share_of_the_budget():
-  scales = [training.curriculum_scale(0.5, done, 60_000) for done in
-            (0, 15_000, 30_000, 45_000)]  # fmt: skip
-  assert scales == [0.0, 0.5, 1.0, 1.0]
-
-
-def test_curriculum_agent_needs_a_randomized_task():
-  config = run_config.RunConfig(
-    domain='dclaw', task='pose_random', algo='sac_curriculum'
-  )
-  with pytest.raises(ValueError, match='needs a RandomDynamics task, not'):
-    config.check()
-
-
-@pytest.mark.slow
-def test_curriculum_run_sets_the_scale_before_each_chunk(tmp_path, monkeypatch):
-  seen = []
-  original = robel_gym.RobelEnv.set_randomization_scale
-
-  def spy(self, scale):
-    seen.append(scale)
-    original(self, scale)
-
-  monkeypatch.setattr(robel_gym.RobelEnv, 'set_randomization_scale', spy)
-  config = run_config.RunConfig(
-    domain='dclaw', task='pose_random_dynamics', algo='sac_curriculum',
-    steps=800, eval_every=200, eval_episodes=1,
-  )  # fmt: skip
-  training.train(config, tmp_path, log=lambda line: None)
-  # Half of 800 steps: 0, 0.5, then the task's full ranges.
-  assert seen == [0.0, 0.5, 1.0, 1.0]

@@ -9,9 +9,8 @@ constants where it has them) and the model, not from the code under test.
 import numpy as np
 import pytest
 
-from robel_dm import evaluation, policies, suite
+from robel_dm import suite
 from robel_dm.arenas import floor
-from robel_dm.learning import agents, run_config, training
 
 pytestmark = pytest.mark.filterwarnings('ignore::DeprecationWarning')
 
@@ -116,116 +115,6 @@ def test_privileged_observation_needs_randomized_dynamics():
 def test_default_observation_unchanged():
   keys = suite.load('dclaw', 'pose_random_dynamics').task
   assert 'privileged' not in keys.agent_observation_keys
-
-
-def _config(algo, **kwargs):
-  return run_config.RunConfig(
-    domain='dclaw', task='pose_random_dynamics', algo=algo, **kwargs
-  )
-
-
-def test_which_env_reads_the_privileged_observation():
-  asymmetric, privileged, plain = (
-    _config('sac_asymmetric'),
-    _config('sac_privileged'),
-    _config('sac'),
-  )
-  # The asymmetric critics see the dynamics, not the terrain.
-  assert asymmetric.training_task_kwargs == {'privileged': 'dynamics'}
-  assert asymmetric.policy_task_kwargs == {}
-  assert privileged.training_task_kwargs == {'privileged': True}
-  assert privileged.policy_task_kwargs == {'privileged': True}
-  assert plain.training_task_kwargs == plain.policy_task_kwargs == {}
-
-
-def _model(algo):
-  from stable_baselines3.common.vec_env import DummyVecEnv  # noqa: PLC0415
-
-  config = _config(algo)
-  env = DummyVecEnv([lambda: training.make_env(config, 0)])
-  return agents.build(config.agent, env, 0, (32, 32), 1000), env
-
-
-def test_asymmetric_actor_ignores_what_only_the_critics_see():
-  model, env = _model('sac_asymmetric')
-  privileged = env.get_attr('privileged_size')[0]
-  observed = env.observation_space.shape[0] - privileged
-  assert privileged == 19
-  # The actor's first layer takes the robot's share, the critics' all.
-  actor_kernel = model.policy.actor_state.params['params']['Dense_0']
-  assert actor_kernel['kernel'].shape[0] == observed
-  critic_inputs = {
-    leaf.shape[1]
-    for leaf in _leaves(model.policy.qf_state.params)
-    if leaf.ndim == 3  # (critics, inputs, units) of the vectorized critic.
-  }
-  assert env.observation_space.shape[0] + 9 in critic_inputs
-  observation = env.reset()
-  changed = observation.copy()
-  changed[:, observed:] = -changed[:, observed:] + 0.5
-  np.testing.assert_array_equal(
-    model.predict(observation, deterministic=True)[0],
-    model.predict(changed, deterministic=True)[0],
-  )
-  env.close()
-
-
-def _leaves(tree):
-  if isinstance(tree, dict):
-    for value in tree.values():
-      yield from _leaves(value)
-  else:
-    yield np.asarray(tree)
-
-
-@pytest.mark.parametrize('algo', ['sac_asymmetric', 'sac_privileged'])
-def test_privileged_agents_need_a_randomized_task(algo):
-  config = run_config.RunConfig(domain='dclaw', task='pose_random', algo=algo)
-  with pytest.raises(ValueError, match='needs a RandomDynamics task, not'):
-    config.check()
-  _config(algo).check()
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize('algo', ['sac_asymmetric', 'sac_privileged'])
-def test_trained_policy_reads_what_its_actor_saw(tmp_path, algo):
-  config = _config(algo, steps=600, eval_every=600, eval_episodes=1)
-  training.train(config, tmp_path, log=lambda line: None)
-  policy = policies.load(tmp_path / 'policy_best.npz')
-  assert policy.privileged == (algo == 'sac_privileged')
-  lines = []
-  results = evaluation.evaluate(
-    evaluation.EvalConfig(
-      'dclaw', 'pose_random_dynamics', 1, policy=str(tmp_path / 'policy.npz'),
-      log=lines.append,
-    )
-  )  # fmt: skip
-  adopted = 'the policy learned with task option privileged=True: ' + (
-    'evaluating with it'
-  )
-  assert (adopted in lines) == policy.privileged
-  assert results['episodes'] == 1 or results['success_rate'] >= 0
-  if policy.privileged:
-    with pytest.raises(
-      policies.PolicyError, match='trained with privileged True, not False'
-    ):
-      evaluation.evaluate(
-        evaluation.EvalConfig(
-          'dclaw', 'pose_random_dynamics', 1,
-          policy=str(tmp_path / 'policy.npz'),
-          task_kwargs={'privileged': False},
-        )
-      )  # fmt: skip
-
-
-def test_a_policy_saved_before_the_prefix_actor_existed_still_acts():
-  # Pickled SAC policies of older runs have no `observed`; a resumed run
-  # must act with them as before.
-  model, env = _model('sac')
-  del model.policy.__dict__['observed']
-  observation = env.reset()
-  assert model.predict(observation, deterministic=True)[0].shape == (1, 9)
-  env.close()
 
 
 def test_no_robot_gives_privileged_observations(tmp_path):
