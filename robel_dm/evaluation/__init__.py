@@ -171,7 +171,7 @@ def evaluate(
   # A policy file is read and checked against the task before anything is
   # built (and a robot moves); None for policies that are not files.
   checked = _checked_policy(config)
-  config = _with_policy_action_map(config, checked)
+  config = _with_policy_task_options(config, checked)
   if env is not None:
     tally = episodes.Tally(_head(config, provenance_record), config.on_episode)
     _run_here(config, env, _policy(config, env, checked), tally)
@@ -214,7 +214,7 @@ def _checked_policy(config: EvalConfig) -> policies.Policy | None:
   return checked
 
 
-def _with_policy_action_map(
+def _with_policy_task_options(
   config: EvalConfig, checked: policies.Policy | None
 ) -> EvalConfig:
   """`config` with the checked policy file's action map (if it learned
