@@ -143,9 +143,8 @@ def results_table(rows: list[dict], domain: str) -> str:
     group = list(choice.rows)
     name = task + ('' if valve == 'valve3' else f' ({valve})')
     solved = sum(map(baselines.solved, group))
-    shipped = _shipped_cell(dom, task, valve, choice.shipped)
-    reading = (
-      _shipped_reading(dom, task, by_agent) if valve == 'valve3' else '-'
+    shipped, reading = _shipped_cells(
+      dom, task, valve, by_agent, choice.shipped
     )
     lines.append(
       f'| {name} | `{choice.algo}`: {choice.why} | {_spread(group)} '
@@ -159,21 +158,27 @@ def results_table(rows: list[dict], domain: str) -> str:
   return '\n'.join(lines)
 
 
-def _shipped_cell(
-  domain: str, task: str, valve: str, rule: dict | None = None
-) -> str:
-  """The shipped policy's agent and seed, and the rule's run where that
-  differs (its run is not at hand yet)."""
+def _shipped_cells(
+  domain: str, task: str, valve: str, by_agent: dict, rule: dict | None
+) -> tuple[str, str]:
+  """The shipped policy (its file read once): its agent and seed, with
+  the rule's run where that differs (its run is not at hand yet); and its
+  record's test success (95% interval) and violations per episode, all
+  kinds summed. '-' for both if none is shipped."""
   made = baselines.shipped_metadata(domain, task) if valve == 'valve3' else None
   if made is None:
-    return '-'
+    return '-', '-'
   cell = f'`{made["algo"]}` seed {made["seed"]}'
   if rule is not None and (rule['algo'], rule['seed']) != (
     made['algo'],
     made['seed'],
   ):
     cell += f' (rule: `{rule["algo"]}` seed {rule["seed"]}, not here)'
-  return cell
+  record = next(
+    row for row in by_agent[made['algo']] if row['seed'] == made['seed']
+  )
+  reading = f'{_success(record)}, {sum(record["violations"].values()):.0f}'
+  return cell, reading
 
 
 def _by_task_and_agent(rows: list[dict]) -> dict[tuple[str, str], list]:
@@ -411,27 +416,16 @@ def readme_table(rows: list[dict]) -> str:
       continue
     choice = selection.choose(by_agent)
     group = list(choice.rows)
+    shipped, reading = _shipped_cells(
+      domain, task, valve, by_agent, choice.shipped
+    )
     lines.append(
       f'| {domain}/{task} | `{choice.algo}` | {_spread(group)} '
       f'| {sum(map(baselines.solved, group))} of {len(group)} '
       f'| {_steps(selection.median_steps_to_80(group))} '
-      f'| {_to_80(group, "wall")} '
-      f'| {_shipped_cell(domain, task, valve, choice.shipped)} '
-      f'| {_shipped_reading(domain, task, by_agent)} |'
+      f'| {_to_80(group, "wall")} | {shipped} | {reading} |'
     )
   return '\n'.join(lines)
-
-
-def _shipped_reading(domain: str, task: str, by_agent: dict) -> str:
-  """The shipped policy's record: its test success (95% interval) and
-  violations per episode, all kinds summed; '-' if none is shipped."""
-  made = baselines.shipped_metadata(domain, task)
-  if made is None:
-    return '-'
-  record = next(
-    row for row in by_agent[made['algo']] if row['seed'] == made['seed']
-  )
-  return f'{_success(record)}, {sum(record["violations"].values()):.0f}'
 
 
 def records_digest() -> str:
