@@ -126,7 +126,9 @@ class DynamicsRandomizer:
     self._ranges = ranges
     self._targets = targets
     self._nominal = None
-    self._draws = np.zeros(0)
+    # What `draws` holds: fixed by the ranges and targets.
+    self._quantities = self._drawn_quantities()
+    self._draws = np.zeros(self.draw_count)
     self._scale = 1.0
 
   @property
@@ -195,12 +197,11 @@ class DynamicsRandomizer:
       'body_mass': model.body_mass.copy(),
       'body_inertia': model.body_inertia.copy(),
     }
-    self._draws = np.zeros(self.draw_count)
 
   @property
   def draw_count(self) -> int:
     """The size of `draws`."""
-    return sum(size for _, size in self._drawn_quantities())
+    return sum(size for _, size in self._quantities)
 
   def _drawn_quantities(self) -> list[tuple[str, int]]:
     """(`DynamicsRanges` field, number of draws) of what `draws` holds."""
@@ -223,7 +224,7 @@ class DynamicsRandomizer:
   def _record_draws(self, drawn: dict[str, np.ndarray]) -> None:
     """Writes `draws`: each drawn value scaled to [-1, 1] over its range."""
     offset = 0
-    for name, size in self._drawn_quantities():
+    for name, size in self._quantities:
       span = getattr(self._ranges, name)
       low, high = np.asarray(span.low, float), np.asarray(span.high, float)
       width = np.where(high > low, high - low, 1.0)
