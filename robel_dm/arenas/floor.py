@@ -37,8 +37,13 @@ class KittyFloor(composer.Arena):
       self._hfield = None
 
   # The share of ROBEL's bump height the terrain gets (1: all of it; a
-  # curriculum raises it from 0), set by `RobelTask.set_randomization_scale`.
-  randomization_scale = 1.0
+  # curriculum raises it from 0).
+  _height_scale = 1.0
+
+  def set_height_scale(self, scale: float) -> None:
+    """Scales the heights drawn from the next `regenerate` on: 1 is
+    ROBEL's terrain, 0 a flat heightfield."""
+    self._height_scale = scale
 
   @property
   def has_terrain(self) -> bool:
@@ -80,8 +85,8 @@ class KittyFloor(composer.Arena):
     if self._hfield is None:
       return
     self._heights[:] = TERRAIN_HEIGHT.sample(random_state, self._heights.size)
-    if self.randomization_scale != 1.0:
-      self._heights *= self.randomization_scale
+    if self._height_scale != 1.0:
+      self._heights *= self._height_scale
     # A renderer keeps its own copy of the heightfield: refresh it if one
     # exists (without making one).
     contexts = environment.existing_render_contexts(physics)

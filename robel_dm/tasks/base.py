@@ -107,6 +107,9 @@ class Scene:
       (`TaskOptions.privileged`) after the randomized dynamics, e.g. the
       terrain under the D'Kitty; None: nothing.
     privileged_size: the size of what `privileged_state` returns.
+    set_randomization_scale: scales what the scene itself randomizes (the
+      D'Kitty's terrain) like the task's dynamics, from the next reset
+      (`RobelTask.set_randomization_scale`); None: it randomizes nothing.
   """
 
   arena: composer.Arena
@@ -120,6 +123,7 @@ class Scene:
   root_joint: mjcf.Element | None = None
   privileged_state: Callable[[], np.ndarray] | None = None
   privileged_size: int = 0
+  set_randomization_scale: Callable[[float], None] | None = None
 
 
 # Task options that fix what an action means (the valve's shape, the action
@@ -273,6 +277,7 @@ class RobelTask(composer.Task):
       scene.privileged_state if with_scene else None
     )
     self._scene_privileged_size = scene.privileged_size if with_scene else 0
+    self._scene_randomization_scale = scene.set_randomization_scale
 
     self._allocate_state(robot, observation_noise)
     self._make_observables(keys)
@@ -459,8 +464,8 @@ class RobelTask(composer.Task):
     if self._randomizer is None:
       raise ValueError(f'{type(self).__name__} randomizes no physics')
     self._randomizer.scale = scale
-    if hasattr(self._arena, 'randomization_scale'):
-      self._arena.randomization_scale = self._randomizer.scale
+    if self._scene_randomization_scale is not None:
+      self._scene_randomization_scale(self._randomizer.scale)
 
   @property
   def observation_noise(self) -> float:

@@ -233,6 +233,9 @@ class KittyParts:
       if self.arena.has_terrain
       else None,
       privileged_size=floor.TERRAIN_PATCH**2 if self.arena.has_terrain else 0,
+      set_randomization_scale=self.arena.set_height_scale
+      if self.arena.has_terrain
+      else None,
     )
 
   def terrain_under_torso(self) -> np.ndarray:
