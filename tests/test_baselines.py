@@ -665,3 +665,20 @@ def test_a_warm_runs_steps_to_80_count_its_sources():
   assert selection.steps_to_80(row) == 0
   row['started_from'] = {'run': 'dclaw_pose_random_sac_seed0', 'env_steps': 15}
   assert selection.steps_to_80(row) == 15
+
+
+def test_a_runs_own_steps_to_80_show_whatever_its_test_reads():
+  # Unsolved on test (0.79), yet its training evaluations reached 80%.
+  row = {'success': 0.79, 'steps_to_80': 160_000, 'protocol': 2}
+  assert selection.steps_to_80(row) == selection.UNSOLVED  # For medians.
+  assert report._training_steps_to_80(row) == '160,000'
+  row['started_from'] = {'env_steps': 15_000}
+  assert report._training_steps_to_80(row) == '175,000'
+  assert report._training_steps_to_80({'steps_to_80': None}) == 'never'
+
+
+def test_violation_kinds_show_tenths():
+  # Whole numbers would read 9 / 18 beside a sum of 26.
+  row = {'violations': {'position': 8.6, 'velocity': 17.6, 'current': 0.0}}
+  assert report._violations(row) == '8.6 / 17.6 / 0.0'
+  assert report._mean_violations([row, row]) == '8.6 / 17.6 / 0.0'
