@@ -400,6 +400,29 @@ def test_safe_solved_runs_are_preferred_on_validation_violations():
   assert baselines.solved(unsafe) and not baselines.solved_safely(unsafe)
 
 
+def test_a_seed_solved_safely_ships_where_the_recommended_agent_has_none():
+  bar = baselines.PLAN['safe_violations']
+  by_agent = {
+    # Solves every seed, none within the budget: recommended.
+    'sac': [_safety(_row('sac', s, 0.95, 0.95), 5 * bar) for s in range(3)],
+    # Solves one seed, safely: its policy is the one for robots.
+    'sac_safe': [
+      _safety(_row('sac_safe', s, v, 0.9), 0)
+      for s, v in ((0, 0.7), (1, 0.85), (2, 0.6))
+    ],
+    # A safe seed too, but the agent's policies need a simulation.
+    'sac_privileged': [
+      _safety(_row('sac_privileged', s, 1.0, 1.0), 0) for s in range(3)
+    ],
+  }  # fmt: skip
+  choice = selection.choose(by_agent)
+  assert choice.algo == 'sac'
+  assert (choice.shipped['algo'], choice.shipped['seed']) == ('sac_safe', 1)
+  # Without it, the recommended agent's best seed.
+  del by_agent['sac_safe']
+  assert selection.choose(by_agent).shipped['algo'] == 'sac'
+
+
 def test_the_chosen_run_is_shipped_when_its_policy_is_at_hand(sandbox):
   def policy(path, algo, seed):
     path.parent.mkdir(parents=True, exist_ok=True)

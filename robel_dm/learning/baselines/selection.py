@@ -124,9 +124,7 @@ def for_robots(algo: str) -> bool:
 
 def choose(by_agent: dict[str, list[dict]]) -> Choice:
   """The task's recommended agent (best `_merit` of those `for_robots`) and
-  the run shipped: its seed solved safely, then with the highest
-  validation success, then validation score, if that is solved on
-  validation."""
+  the run shipped (`_shipped`)."""
   seeds = len(baselines.PLAN['seeds'])
   ranked = sorted(
     filter(for_robots, by_agent),
@@ -134,18 +132,28 @@ def choose(by_agent: dict[str, list[dict]]) -> Choice:
     reverse=True,
   )
   algo, group = ranked[0], by_agent[ranked[0]]
-  best = max(
-    group,
-    key=lambda row: (
-      safely_solved(row),
-      validation_success(row),
-      validation_score(row),
-    ),
-  )
-  shipped = (
-    best if validation_success(best) >= baselines.PLAN['solved'] else None
-  )
+  shipped = _shipped(group, [by_agent[other] for other in ranked])
   return Choice(algo, tuple(group), shipped, _why(algo, by_agent, ranked))
+
+
+def _shipped(recommended: list[dict], groups: list[list[dict]]) -> dict | None:
+  """The run whose policy goes on robots: the recommended agent's best seed
+  solved safely on validation (highest validation success, then score);
+  where it has none, the best such seed of the other agents (`groups`, in
+  rank order); where no agent has one, the recommended agent's best seed
+  solved on validation; None if it has none. Which agent to train and
+  which policy to run on a robot are separate questions: a seed solved
+  safely ships even where another agent solves more seeds."""
+
+  def merit(row):
+    return validation_success(row), validation_score(row)
+
+  for group in (recommended, *groups):
+    safe = [row for row in group if safely_solved(row)]
+    if safe:
+      return max(safe, key=merit)
+  best = max(recommended, key=merit)
+  return best if validation_success(best) >= baselines.PLAN['solved'] else None
 
 
 def _why(algo: str, by_agent: dict[str, list[dict]], ranked: list[str]) -> str:
