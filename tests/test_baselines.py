@@ -97,6 +97,74 @@ def test_a_run_stops_after_a_streak_of_solved_evaluations(
   assert run.solved(run.history[-1]) == stops
 
 
+def _evaluation(success: float, violations: float, score: float = 0.0):
+  return {
+    'success_rate': success,
+    'mean_score': score,
+    'safety': {'position': violations, 'velocity': 0.0, 'current': 0.0},
+  }
+
+
+@pytest.mark.parametrize('algo, stops', [('sac', True), ('sac_safe', False)])
+def test_a_constrained_run_stops_only_within_its_budget(tmp_path, algo, stops):
+  from robel_dm.learning import training  # noqa: PLC0415
+
+  config = training.RunConfig(
+    'dclaw', 'pose_random', algo=algo, stop_at_success=0.8, stop_streak=2
+  )
+  run = training.Run(tmp_path, config, log=lambda line: None)
+  # Solved twice, the second time over sac_safe's budget of 10.
+  run.history = [_evaluation(0.9, 3.0), _evaluation(0.9, 25.0)]
+  assert run.solved(run.history[-1]) == stops
+  # Two in a row within it (10 is within a budget of 10).
+  run.history += [_evaluation(1.0, 10.0), _evaluation(0.8, 0.0)]
+  assert run.solved(run.history[-1])
+
+
+def test_a_constrained_run_keeps_its_best_policy_within_budget():
+  from robel_dm.learning import training  # noqa: PLC0415
+
+  rows = [
+    _evaluation(0.7, 4.0),
+    _evaluation(1.0, 30.0),
+    _evaluation(0.7, 9.0, 1),
+  ]
+  assert training.best_of(rows) is rows[1]
+  assert training.best_of(rows, budget=10.0) is rows[2]
+  # None within it: the best success, as without a budget.
+  assert training.best_of(rows[1:2] + rows[1:2], budget=1.0) is rows[1]
+
+
+@pytest.mark.slow
+def test_a_constrained_runs_confirmation_must_keep_its_budget(
+  sandbox, monkeypatch
+):
+  from robel_dm import evaluation  # noqa: PLC0415
+  from robel_dm.learning import training  # noqa: PLC0415
+
+  real_policy, real_evaluate = training.evaluate_policy, evaluation.evaluate
+  unsafe = {'position': 50.0, 'velocity': 0.0, 'current': 0.0}
+  safe = {'position': 0.0, 'velocity': 0.0, 'current': 0.0}
+
+  def solved_safely(*args, **kwargs):  # Training evaluations: within budget.
+    return real_policy(*args, **kwargs) | {'success_rate': 1.0, 'safety': safe}
+
+  def solved_unsafely(*args, **kwargs):  # Fresh episodes: over it.
+    return real_evaluate(*args, **kwargs) | {'success_rate': 1.0,
+                                             'safety': unsafe}  # fmt: skip
+
+  monkeypatch.setattr(training, 'evaluate_policy', solved_safely)
+  monkeypatch.setattr(evaluation, 'evaluate', solved_unsafely)
+  baselines.PLAN['tasks']['dclaw/pose_random'] = {'steps': 32, 'eval_every': 8}
+  lines = []
+  run = baselines.Run('dclaw', 'pose_random', 'sac_safe', 0)
+  record = baselines.train_run(run, log=lines.append)
+  confirmations = record['confirmations']
+  assert confirmations and all(c['violations'] == unsafe for c in confirmations)
+  assert record['env_steps'] == 32  # Trained on to its budget.
+  assert any('50.0 violations per episode: training on' in x for x in lines)
+
+
 @pytest.fixture
 def sandbox(tmp_path, monkeypatch):
   """The table's paths and a tiny plan (pose and stand only)."""
@@ -215,6 +283,7 @@ def test_a_best_policy_is_checked_once(sandbox, monkeypatch):
       'success': record['confirmations'][0]['success'],
       'seed': baselines.CONFIRM_SEED_OFFSET,
       'policy_steps': 0,
+      'violations': record['confirmations'][0]['violations'],
     }
   ]
   assert sum('was checked before: training on' in line for line in lines) == 2

@@ -192,21 +192,31 @@ def evaluate_policy(
   }
 
 
-def _better(row: dict, best: dict | None) -> bool:
+def within_budget(row: dict, budget: float | None) -> bool:
+  """Whether an evaluation's safety violations per episode (all kinds
+  summed) are within a run's safety `budget` (always, without one)."""
+  return budget is None or sum(row['safety'].values()) <= budget
+
+
+def _better(row: dict, best: dict | None, budget: float | None) -> bool:
+  """Whether `row` beats the `best` evaluation so far (see `best_of`)."""
   if best is None:
     return True
-  return (row['success_rate'], row['mean_score']) > (
-    best['success_rate'],
-    best['mean_score'],
-  )
+
+  def merit(r):
+    return within_budget(r, budget), r['success_rate'], r['mean_score']
+
+  return merit(row) > merit(best)
 
 
-def best_of(rows: list[dict]) -> dict | None:
+def best_of(rows: list[dict], budget: float | None = None) -> dict | None:
   """The evaluation whose policy a run keeps as its best (higher success
-  rate, then higher mean score; ties keep the earlier), or None."""
+  rate, then higher mean score; ties keep the earlier), or None. Under a
+  safety `budget`, evaluations within it come first: a constrained run
+  keeps the best policy that keeps its budget, if one does."""
   best = None
   for row in rows:
-    if _better(row, best):
+    if _better(row, best, budget):
       best = row
   return best
 
@@ -239,7 +249,7 @@ class Run:
       self.history = [
         json.loads(line) for line in self.log_path.read_text().splitlines()
       ]
-    self.best = best_of(self.history)
+    self.best = best_of(self.history, self.config.budget)
     if self.history:
       self._wall = self.history[-1]['wall_time']
       self._cpu = self.history[-1].get('cpu_time', 0.0)
@@ -249,12 +259,15 @@ class Run:
     """Whether `row`, the last evaluation, ends the run early (see
     `stop_at_success`)."""
     target, streak = self.config.stop_at_success, self.config.stop_streak
-    if target is None or row['success_rate'] < target:
+    budget = self.config.budget
+
+    def solved(r):  # Under a safety budget, only within it.
+      return r['success_rate'] >= target and within_budget(r, budget)
+
+    if target is None or not solved(row):
       return False
     recent = self.history[-streak:]
-    return len(recent) == streak and all(
-      r['success_rate'] >= target for r in recent
-    )
+    return len(recent) == streak and all(map(solved, recent))
 
   def start_clocks(self) -> None:
     self._wall -= time.perf_counter()
@@ -289,7 +302,7 @@ class Run:
       **metrics,
     }
     self._evaluating += time.perf_counter() - start
-    if _better(row, self.best):
+    if _better(row, self.best, self.config.budget):
       self.best = row
       policy.save(self.output / BEST_POLICY)
     self.history.append(row)

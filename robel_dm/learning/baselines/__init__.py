@@ -291,12 +291,17 @@ def _curve_end(run: Run, rows: list[dict] | None = None) -> int | float:
   return last.get('epoch', last['env_steps'])
 
 
-def _best_policy_steps(rows: list[dict], until: int | float) -> int:
-  """The env steps at which the run's best policy (as `train` keeps it)
-  was evaluated, among the evaluations up to `until` steps."""
+def _best_policy_steps(
+  rows: list[dict], until: int | float, budget: float | None
+) -> int:
+  """The env steps at which the run's best policy (as `train` keeps it,
+  under the run's safety `budget`) was evaluated, among the evaluations up
+  to `until` steps."""
   from robel_dm.learning import training  # noqa: PLC0415
 
-  best = training.best_of([row for row in rows if row['env_steps'] <= until])
+  best = training.best_of(
+    [row for row in rows if row['env_steps'] <= until], budget
+  )
   return best['env_steps']
 
 
@@ -309,9 +314,10 @@ def _confirmed(run: Run, log=print) -> bool:
   on the final 50 episodes. A policy is checked once: checking the same
   one again until a reading passes would only select a lucky reading, so
   a run whose best policy was checked trains on until it has a new one
-  (or to its budget)."""
+  (or to its budget). A constrained agent's policy must also keep its
+  safety budget on those episodes."""
   from robel_dm import evaluation, policies  # noqa: PLC0415
-  from robel_dm.learning import training  # noqa: PLC0415
+  from robel_dm.learning import agents, training  # noqa: PLC0415
 
   path = run.directory / CONFIRMATIONS
   checked = (
@@ -321,9 +327,10 @@ def _confirmed(run: Run, log=print) -> bool:
   )
   rows = evaluations(run)
   steps = _curve_end(run, rows)
-  policy_steps = _best_policy_steps(rows, steps)
+  budget = agents.get(run.algo).safety_budget
+  policy_steps = _best_policy_steps(rows, steps, budget)
   if any(
-    _best_policy_steps(rows, check['env_steps']) == policy_steps
+    _best_policy_steps(rows, check['env_steps'], budget) == policy_steps
     for check in checked
   ):
     log(
@@ -350,13 +357,18 @@ def _confirmed(run: Run, log=print) -> bool:
     'success': rate,
     'seed': seed,
     'policy_steps': policy_steps,
+    'violations': results['safety'],
   }
   with open(path, 'a') as file:
     file.write(json.dumps(line) + '\n')
-  held = rate >= PLAN['solved']
+  # A constrained agent's run is solved only within its safety budget.
+  held = rate >= PLAN['solved'] and training.within_budget(
+    {'safety': results['safety']}, budget
+  )
   log(
     f'{run.name}: stopped at {steps:,} steps; {episodes} fresh episodes '
-    f'give {rate:.2f}: {"confirmed" if held else "training on"}'
+    f'give {rate:.2f}, {sum(results["safety"].values()):.1f} violations per '
+    f'episode: {"confirmed" if held else "training on"}'
   )
   return held
 
