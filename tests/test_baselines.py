@@ -522,6 +522,13 @@ def test_the_chosen_run_is_shipped_when_its_policy_is_at_hand(sandbox):
   assert selection.best_policy('dclaw', 'pose_random') == (
     run('trpo', 0) / 'policy_best.npz'
   )
+  # The same policy in other bytes (a remade run's) is not copied again.
+  policy(run('trpo', 0) / 'policy_best.npz', 'trpo', 0)
+  bytes_before = shipped.read_bytes()
+  with open(run('trpo', 0) / 'policy_best.npz', 'ab') as file:
+    file.write(b'\0')  # Bytes after the zip's end: np.load reads the same.
+  report.ship(rows)
+  assert shipped.read_bytes() == bytes_before
 
 
 @pytest.mark.slow

@@ -10,6 +10,8 @@ import json
 import shutil
 import statistics
 
+import numpy as np
+
 from robel_dm import suite
 from robel_dm.learning import baselines, curves
 from robel_dm.learning.baselines import selection
@@ -382,6 +384,17 @@ def figures(rows: list[dict]) -> list[str]:
   return written
 
 
+def _same_policy(a, b) -> bool:
+  """Whether two policy files hold the same arrays and metadata (a run
+  made again writes the same policy in new zip bytes: it is not copied)."""
+  if not b.is_file():
+    return False
+  with np.load(a) as first, np.load(b) as second:
+    return sorted(first.files) == sorted(second.files) and all(
+      np.array_equal(first[name], second[name]) for name in first.files
+    )
+
+
 def ship(rows: list[dict]) -> list[str]:
   """Copies the policy of each task's run that `selection.choose` ships,
   where it is at hand, into policies/ (which `--policy=baseline` runs);
@@ -394,7 +407,11 @@ def ship(rows: list[dict]) -> list[str]:
       continue
     source = selection.best_policy(domain, task, rows)
     target = baselines.POLICIES / f'{domain}_{task}.npz'
-    if source is not None and source != target:
+    if (
+      source is not None
+      and source != target
+      and not _same_policy(source, target)
+    ):
       shutil.copy(source, target)
     made = baselines.shipped_metadata(domain, task)
     if made is None:
