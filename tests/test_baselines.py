@@ -412,6 +412,21 @@ def test_the_agent_and_run_are_chosen_on_validation_not_test():
   assert selection.choose(low).shipped is None
 
 
+def test_the_reason_names_the_readings_it_counts():
+  group = [_row('sac', s, 0.9, 0.9) for s in range(3)]
+  assert 'on validation (the only' in selection.choose({'sac': group}).why
+  del group[0]['validation']  # A protocol-1 seed among protocol-2 ones.
+  assert selection.choose({'sac': group}).why.startswith(
+    'solves 3 of 3 seeds on validation (protocol-1 seeds: their reported '
+    'success)'
+  )
+  for row in group:
+    row.pop('validation', None)
+  assert 'on its reported success (protocol 1)' in (
+    selection.choose({'sac': group}).why
+  )
+
+
 def test_an_agent_reading_privileged_state_is_never_recommended():
   by_agent = {
     'sac': [_row('sac', s, v, 0.8) for s, v in enumerate((0.9, 0.5, 0.5))],

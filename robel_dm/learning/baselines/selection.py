@@ -161,11 +161,13 @@ def _why(algo: str, by_agent: dict[str, list[dict]], ranked: list[str]) -> str:
   bar = baselines.PLAN['solved']
   solved = sum(validation_success(row) >= bar for row in group)
   safe = sum(safely_solved(row) for row in group)
-  reading = (
-    'validation'
-    if all('validation' in row for row in group)
-    else 'its reported success (protocol 1)'
-  )
+  with_validation = sum('validation' in row for row in group)
+  if with_validation == len(group):
+    reading = 'validation'
+  elif with_validation:
+    reading = 'validation (protocol-1 seeds: their reported success)'
+  else:
+    reading = 'its reported success (protocol 1)'
   text = f'solves {solved} of {len(group)} seeds on {reading}'
   if safe:
     text += f', {safe} of them safely'
