@@ -102,12 +102,9 @@ def run_table(rows: list[dict]) -> str:
 
 
 def _training_steps_to_80(row: dict) -> str:
-  """The env steps to the run's first training evaluation at 80% (those
-  of the run it started from included), whatever its test reads."""
-  if row['steps_to_80'] is None:
-    return 'never'
-  before = (row.get('started_from') or {}).get('env_steps', 0)
-  return f'{before + row["steps_to_80"]:,}'
+  """`selection.training_steps_to_80`, or 'never'."""
+  steps = selection.training_steps_to_80(row)
+  return 'never' if steps is None else f'{steps:,}'
 
 
 def _spread(group: list[dict]) -> str:

@@ -51,14 +51,21 @@ def safely_solved(row: dict) -> bool:
   )
 
 
-def steps_to_80(row: dict) -> float:
-  """The env steps to the first training evaluation at 80% of a solved
-  row, those of the run it started from included; UNSOLVED for a row whose
-  reported success is below the bar."""
-  if not baselines.solved(row) or row['steps_to_80'] is None:
-    return UNSOLVED
+def training_steps_to_80(row: dict) -> int | None:
+  """The env steps to the run's first training evaluation at 80%, those of
+  the run it started from included, whatever its test reads; None if no
+  evaluation got there."""
+  if row['steps_to_80'] is None:
+    return None
   before = (row.get('started_from') or {}).get('env_steps', 0)
   return before + row['steps_to_80']
+
+
+def steps_to_80(row: dict) -> float:
+  """`training_steps_to_80` of a solved row; UNSOLVED for a row whose
+  reported success is below the bar (or that never got there)."""
+  steps = training_steps_to_80(row) if baselines.solved(row) else None
+  return UNSOLVED if steps is None else steps
 
 
 def minutes_to_80(row: dict, unit: str) -> float | None:
@@ -132,27 +139,28 @@ def choose(by_agent: dict[str, list[dict]]) -> Choice:
     reverse=True,
   )
   algo, group = ranked[0], by_agent[ranked[0]]
-  shipped = _shipped(group, [by_agent[other] for other in ranked])
+  shipped = _shipped([by_agent[other] for other in ranked])
   return Choice(algo, tuple(group), shipped, _why(algo, by_agent, ranked))
 
 
-def _shipped(recommended: list[dict], groups: list[list[dict]]) -> dict | None:
-  """The run whose policy goes on robots: the recommended agent's best seed
-  solved safely on validation (highest validation success, then score);
-  where it has none, the best such seed of the other agents (`groups`, in
-  rank order); where no agent has one, the recommended agent's best seed
-  solved on validation; None if it has none. Which agent to train and
+def _shipped(groups: list[list[dict]]) -> dict | None:
+  """The run whose policy goes on robots, of the agents' `groups` in rank
+  order (the first is the recommended agent's): the recommended agent's
+  best seed solved safely on validation (highest validation success, then
+  score); where it has none, the best such seed of the next agents; where
+  no agent has one, the recommended agent's best seed solved on
+  validation; None if it has none. Which agent to train and
   which policy to run on a robot are separate questions: a seed solved
   safely ships even where another agent solves more seeds."""
 
   def merit(row):
     return validation_success(row), validation_score(row)
 
-  for group in (recommended, *groups):
+  for group in groups:
     safe = [row for row in group if safely_solved(row)]
     if safe:
       return max(safe, key=merit)
-  best = max(recommended, key=merit)
+  best = max(groups[0], key=merit)
   return best if validation_success(best) >= baselines.PLAN['solved'] else None
 
 
