@@ -3,7 +3,7 @@ r"""Success against safety violations, per safety budget (train
 
     MUJOCO_GL=egl python benchmarks/safety_frontier.py --task=pose_fixed \
         --budgets=none,200,50,10 --seeds=0,1,2 [--steps=40000] \
-        [--action_map=safe]
+        [--action_map=safe] [--init_from=runs/baselines/TASK_sac_seed{seed}]
 
 Each (budget, seed) is a `train` run of the default agent with that
 `--safety_budget` ('none': no budget), acting through `--action_map`
@@ -12,8 +12,12 @@ Each (budget, seed) is a `train` run of the default agent with that
 task, whose episodes are all the same; 10 otherwise). Printed per run: the
 last evaluation's success and violations per episode (all kinds summed), and
 the first evaluation, if any, that meets ROBEL-safe success: success >= 0.8
-with at most 10 violations per episode. One JSON line per run, also appended
-to OUTPUT/results.jsonl; then per budget the means over seeds.
+with at most 10 violations per episode. With `--init_from` (a run folder,
+`{seed}` replaced by the seed) a run starts from that run's networks, so that
+the budget tightens a policy that already solves the task; its best policy
+within the budget then plays `--test_episodes` episodes seeded apart from
+every other use (the table's included), read once. One JSON line per run,
+also appended to OUTPUT/results.jsonl; then per budget the means over seeds.
 """
 
 import argparse
@@ -29,6 +33,8 @@ sys.path.insert(0, str(ROOT))
 
 SOLVED = 0.8
 SAFE = 10  # Violations per episode, all kinds summed.
+# Apart from training's, its evaluations' and the table's episode seeds.
+TEST_SEED_OFFSET = 8_000_000
 
 
 def _violations(row: dict) -> float:
@@ -48,9 +54,11 @@ def run(args, budget: float | None, seed: int) -> dict:
     eval_episodes=1 if task.endswith('_fixed') else 10,
     safety_budget=budget,
     task_kwargs={'action_map': args.action_map},
+    init_from=args.init_from.format(seed=seed) if args.init_from else None,
   )
   label = 'none' if budget is None else int(budget)
-  name = f'{task}_{args.action_map}_budget{label}_{seed}'
+  warm = '_warm' if args.init_from else ''
+  name = f'{task}_{args.action_map}{warm}_budget{label}_{seed}'
   directory = pathlib.Path(args.output) / name
   shutil.rmtree(directory, ignore_errors=True)
   start = time.process_time()
@@ -61,16 +69,44 @@ def run(args, budget: float | None, seed: int) -> dict:
     for row in history
     if row['success_rate'] >= SOLVED and _violations(row) <= SAFE
   ]
-  return {
+  row = {
     'task': args.task,
     'action_map': args.action_map,
     'budget': budget,
     'seed': seed,
+    'init_from': config.init_from,
     'env_steps': last['env_steps'],
     'success': last['success_rate'],
     'violations': last['safety'],
     'safe_success_at': safe[0]['env_steps'] if safe else None,
     'cpu_seconds': round(time.process_time() - start, 1),
+  }
+  if args.test_episodes:
+    row['test'] = _test(args, config, directory)
+  return row
+
+
+def _test(args, config, directory: pathlib.Path) -> dict:
+  """The run's best policy (within its budget) on its test episodes."""
+  from robel_dm import evaluation, policies  # noqa: PLC0415
+  from robel_dm.learning import training  # noqa: PLC0415
+
+  seed = TEST_SEED_OFFSET + config.seed * 10_000
+  results = evaluation.evaluate(
+    evaluation.EvalConfig(
+      config.domain,
+      config.task,
+      args.test_episodes,
+      policy=policies.load(directory / training.BEST_POLICY),
+      seed=seed,
+      task_kwargs=config.task_kwargs,
+    )
+  )
+  return {
+    'episodes': args.test_episodes,
+    'seed': seed,
+    'success': results['success_rate'],
+    'violations': results['safety'],
   }
 
 
@@ -83,6 +119,17 @@ def main() -> None:
   parser.add_argument('--eval_every', type=int, default=4_000)
   parser.add_argument(
     '--action_map', default='robel', choices=('robel', 'safe')
+  )
+  parser.add_argument(
+    '--init_from',
+    default=None,
+    help='start each run from this run folder ({seed}: the seed)',
+  )
+  parser.add_argument(
+    '--test_episodes',
+    type=int,
+    default=0,
+    help='then read the best policy on this many test episodes (0: none)',
   )
   parser.add_argument('--output', default=str(ROOT / 'runs/safety_frontier'))
   args = parser.parse_args()
@@ -97,13 +144,16 @@ def main() -> None:
       print(json.dumps(row), flush=True)
       with open(output / 'results.jsonl', 'a') as file:
         file.write(json.dumps(row) + '\n')
-  print(f'\n{args.task}, {args.action_map} map: last evaluation, seed mean')
+  reading = 'test episodes' if args.test_episodes else 'last evaluation'
+  print(f'\n{args.task}, {args.action_map} map: {reading}, seed mean')
   print('budget  success  violations/episode  seeds safe-solved')
   for budget in budgets:
-    mine = [r for r in rows if r['budget'] == budget]
+    mine = [r.get('test', r) for r in rows if r['budget'] == budget]
     success = statistics.mean(r['success'] for r in mine)
-    violations = statistics.mean(_violations(r) for r in mine)
-    safe = sum(r['safe_success_at'] is not None for r in mine)
+    violations = statistics.mean(sum(r['violations'].values()) for r in mine)
+    safe = sum(
+      r['safe_success_at'] is not None for r in rows if r['budget'] == budget
+    )
     label = 'none' if budget is None else f'{budget:g}'
     print(
       f'{label:>6}  {success:7.2f}  {violations:18.1f}  {safe} of {len(mine)}'
