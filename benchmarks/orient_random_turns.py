@@ -31,8 +31,12 @@ def _signed_angle(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def _episodes(path: str, count: int) -> dict[str, np.ndarray]:
-  env = suite.load('dkitty', 'orient_random', seed=_SEED)
   policy = policies.load(path, any_variant=True)
+  # The policy acts through the action map it learned with.
+  env = suite.load(
+    'dkitty', 'orient_random', task_kwargs=policy.task_kwargs_for(None),
+    seed=_SEED,
+  )  # fmt: skip
   rows = []
   for _ in range(count):
     timestep = env.reset()

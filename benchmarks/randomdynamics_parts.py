@@ -67,6 +67,8 @@ def run(
   domain: str, task: str, policy, task_kwargs: dict, count: int
 ) -> tuple[float, float, float]:
   """Success rate, share of falls and mean score of `count` episodes."""
+  # The policy acts through the action map it learned with.
+  task_kwargs = policy.task_kwargs_for(task_kwargs)
   env = suite.load(domain, task, task_kwargs=task_kwargs, seed=_SEED)
   success, fallen, score = [], [], []
   for _ in range(count):

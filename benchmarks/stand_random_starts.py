@@ -26,15 +26,21 @@ _BANDS = ((-1.01, 0.0), (0.0, 0.5), (0.5, 0.9), (0.9, 1.01))
 
 def _episodes(driver: str, count: int) -> tuple[np.ndarray, np.ndarray]:
   """(upright after settling, success at the last step) per episode."""
-  env = suite.load('dkitty', 'stand_random', seed=_SEED)
   if driver == 'reference':
+    env = suite.load('dkitty', 'stand_random', seed=_SEED)
     policy = policies.make_policy('reference', env, _SEED)
-  elif driver == 'fixed':
-    policy = policies.load(
-      policies.baseline_path('dkitty', 'stand_fixed'), any_variant=True
+  else:  # A policy file, or the Fixed task's shipped one.
+    path = (
+      policies.baseline_path('dkitty', 'stand_fixed')
+      if driver == 'fixed'
+      else driver
     )
-  else:  # A policy file.
-    policy = policies.load(driver, any_variant=True)
+    policy = policies.load(path, any_variant=True)
+    # The policy acts through the action map it learned with.
+    env = suite.load(
+      'dkitty', 'stand_random', task_kwargs=policy.task_kwargs_for(None),
+      seed=_SEED,
+    )  # fmt: skip
   starts, success = [], []
   for _ in range(count):
     timestep = env.reset()

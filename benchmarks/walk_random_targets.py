@@ -30,6 +30,8 @@ def episodes(
   target's angle from straight ahead and distance at the start, the
   distance left at the end, progress along the direction to the target,
   success, and whether a fall ended it."""
+  # The policy acts through the action map it learned with.
+  task_kwargs = policy.task_kwargs_for(task_kwargs)
   env = suite.load('dkitty', 'walk_random', task_kwargs=task_kwargs, seed=seed)
   rows = []
   for _ in range(count):

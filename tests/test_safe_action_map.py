@@ -155,3 +155,14 @@ def test_a_policy_is_evaluated_through_the_map_it_learned_with(tmp_path):
     policies.PolicyError, match='trained with action_map safe, not robel'
   ):
     evaluate(_slamming_policy(tmp_path, 'safe'), {'action_map': 'robel'})
+
+
+def test_a_loaded_policy_of_another_variant_keeps_its_map(tmp_path):
+  # What `evaluate --allow_other_variant` and the zoo pass: a policy
+  # object, here a Pose Fixed one on Pose Random.
+  policy = policies.load(_slamming_policy(tmp_path, 'safe'), any_variant=True)
+  results = evaluation.evaluate(
+    evaluation.EvalConfig('dclaw', 'pose_random', 1, policy=policy, seed=0)
+  )
+  assert results['task_kwargs'] == {'action_map': 'safe'}
+  assert sum(results['safety'].values()) == 0

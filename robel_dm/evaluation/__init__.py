@@ -201,7 +201,12 @@ def evaluate(
 
 def _checked_policy(config: EvalConfig) -> policies.Policy | None:
   """The policy of a policy file or a replay, read and checked before
-  anything is built; None for the other policies."""
+  anything is built, or a loaded policy file given as such; None for the
+  other policies."""
+  if isinstance(config.policy, policies.NumpyPolicy):
+    # Loaded by the caller (e.g. for another variant): it still acts
+    # through its own action map, on its own observation.
+    return config.policy
   checked = policies.check_file(
     config.policy, config.domain, config.task, config.task_kwargs
   )
