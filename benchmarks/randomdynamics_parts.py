@@ -14,8 +14,10 @@ condition: as it is (`plain`), with one change (`noise`, `dynamics`,
 `terrain`), with all of them (`all`: the RandomDynamics task), or with one
 randomized quantity alone (`damping`, `friction_loss`, `gain`,
 `contact_friction`, `mount`, `mass`, those the task randomizes). Printed
-per condition: success rate, share of episodes ended by a fall (D'Kitty)
-and mean score.
+per condition: success rate, share of episodes ended by a fall (D'Kitty),
+mean score, and ROBEL's safety violations per episode (position, velocity
+and current counts summed). The policy acts through the action map it
+learned with.
 """
 
 import argparse
@@ -28,6 +30,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from robel_dm import constants, policies, randomization, suite  # noqa: E402
+from robel_dm.tasks import base  # noqa: E402
 
 _SEED = 6_000_000  # Apart from training, validation and test episodes.
 # A randomized quantity alone: its `DynamicsRanges` fields.
@@ -65,21 +68,24 @@ def conditions(
 
 def run(
   domain: str, task: str, policy, task_kwargs: dict, count: int
-) -> tuple[float, float, float]:
-  """Success rate, share of falls and mean score of `count` episodes."""
+) -> tuple[float, float, float, float]:
+  """Success rate, share of falls, mean score and safety violations per
+  episode of `count` episodes."""
   # The policy acts through the action map it learned with.
   task_kwargs = policy.task_kwargs_for(task_kwargs)
   env = suite.load(domain, task, task_kwargs=task_kwargs, seed=_SEED)
   success, fallen, score = [], [], []
+  violations = 0
   for _ in range(count):
     timestep = env.reset()
     while not timestep.last():
       timestep = env.step(policy(timestep))
+      violations += int(timestep.observation[base.SAFETY].sum())
     success.append(bool(timestep.observation['success']))
     fallen.append(timestep.discount == 0)  # A fall ends with discount 0.
     score.append(float(timestep.observation['score']))
   env.close()
-  return np.mean(success), np.mean(fallen), np.mean(score)
+  return np.mean(success), np.mean(fallen), np.mean(score), violations / count
 
 
 def main() -> None:
@@ -99,13 +105,15 @@ def main() -> None:
   path = args.policy or policies.baseline_path(domain, f'{family}_random')
   policy = policies.load(path, any_variant=True)
   print(f'{path}: {args.episodes} episodes of {domain}/{family}_random each')
-  print('condition         success  fallen  mean score')
+  print('condition         success  fallen  mean score  violations/episode')
   for name in chosen:
-    success, fallen, score = run(
+    success, fallen, score, violations = run(
       domain, f'{family}_random', policy, table[name], args.episodes
     )
     print(
-      f'{name:16}  {success:7.2f}  {fallen:6.2f}  {score:10.3f}', flush=True
+      f'{name:16}  {success:7.2f}  {fallen:6.2f}  {score:10.3f}  '
+      f'{violations:18.1f}',
+      flush=True,
     )
 
 
