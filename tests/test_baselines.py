@@ -761,6 +761,18 @@ def test_a_warm_run_starts_from_the_random_variant_and_waits_for_it(sandbox):
   assert baselines.Run('dclaw', 'pose_random', 'sac', 0).source() is None
 
 
+def test_a_tightened_run_starts_from_the_same_task_under_a_budget():
+  run = baselines.Run('dclaw', 'screw_random', 'sac_tight', 1)
+  source = run.source()
+  assert source == baselines.Run('dclaw', 'screw_random', 'sac', 1)
+  config = run.config()
+  assert config.init_from == str(source.directory)
+  assert config.budget == 10.0
+  assert config.task_kwargs == {}  # ROBEL's action map, as its source's.
+  assert config.steps == baselines.PLAN['agent_steps']['sac_tight']
+  assert config.steps != baselines.PLAN['tasks']['dclaw/screw_random']['steps']
+
+
 def test_the_constrained_agent_learns_under_its_budget():
   config = baselines.Run('dclaw', 'pose_fixed', 'sac_safe', 0).config()
   assert config.budget == 10.0

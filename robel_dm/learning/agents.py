@@ -18,6 +18,8 @@ from a named library (or, for behaviour cloning, this package):
 | `sac_safe`  | off-policy      | `sac` under a safety budget, through the |
 |             |                 | safe action map (in the baseline plan)   |
 | `sac_warm`  | off-policy      | `sac` from the Random variant's networks |
+| `sac_tight` | off-policy      | `sac_safe`'s budget through ROBEL's map, |
+|             |                 | from the same task's `sac` networks      |
 | `sac_asymmetric` | off-policy | `sac`, critics observing the privileged  |
 |             |                 | state (RandomDynamics)                   |
 | `sac_privileged` | off-policy | `sac`, actor and critics observing it    |
@@ -83,7 +85,7 @@ class Agent:
       under (`train --safety_budget`'s default); None: no budget.
     starts_from: in the baseline table, the variant whose run of the same
       seed (by `sac`) it starts from ('random': a RandomDynamics task's
-      Random variant); None: from scratch.
+      Random variant; 'same': the same task); None: from scratch.
     privileged: on a RandomDynamics task, which networks also observe the
       task's privileged observation (what only a simulation knows):
       PRIVILEGED_ACTOR, actor and critics (a ceiling for any policy a
@@ -234,6 +236,20 @@ AGENTS: dict[str, Agent] = {
       replay=True,
       library=SAC_JAX,
       starts_from='random',
+    ),
+    Agent(
+      'sac_tight',
+      OFF_POLICY,
+      'SAC',
+      'sbx-rl 0.28.0 SAC (JAX), learning rate 1e-3, under a budget of 10 '
+      'safety violations per episode, starting from the networks of the '
+      "same task's sac run of the same seed",
+      (256, 256),
+      _SAC,
+      replay=True,
+      library=SAC_JAX,
+      safety_budget=10.0,
+      starts_from='same',
     ),
     Agent(
       'sac_privileged',

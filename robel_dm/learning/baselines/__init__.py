@@ -89,12 +89,16 @@ class Run:
 
   def source(self) -> 'Run | None':
     """The run this one starts from (its agent's `starts_from`): the
-    default agent's run of the Random variant, same seed; else None."""
+    default agent's run, same seed, of the Random variant ('random') or of
+    this task ('same'); else None."""
     from robel_dm.learning import agents  # noqa: PLC0415
 
-    if agents.get(self.algo).starts_from != 'random':
+    starts_from = agents.get(self.algo).starts_from
+    if starts_from is None:
       return None
-    task = self.task.removesuffix('_dynamics')
+    task = self.task
+    if starts_from == 'random':
+      task = task.removesuffix('_dynamics')
     return Run(self.domain, task, PLAN['default_agent'], self.seed, self.valve4)
 
   def config(self, demos: tuple[str, ...] = ()):
@@ -102,6 +106,8 @@ class Run:
 
     settings = PLAN['tasks'][f'{self.domain}/{self.task}']
     steps, every = settings['steps'], settings['eval_every']
+    # An agent that starts from a trained policy may have a budget of its own.
+    steps = PLAN.get('agent_steps', {}).get(self.algo, steps)
     kind = agents.get(self.algo).kind
     if kind == agents.ON_POLICY:
       steps = min(steps * PLAN['on_policy_factor'], PLAN['on_policy_max_steps'])
