@@ -7,7 +7,9 @@ is the valve within 0.1 rad (5.7 degrees) of it at the end. A Fixed task's
 episodes are all the same episode, so one is the whole answer. For each
 policy, prints the valve angle every 4 control steps (0.4 s), the angle
 left to the goal at the end, and whether the episode succeeded: a run that
-ends unsolved shows where its valve stops.
+ends unsolved shows where its valve stops. Each policy acts through the
+action map it learned with (ROBEL's or the safe one), and a policy of
+another Turn variant may be given.
 """
 
 import argparse
@@ -23,13 +25,15 @@ def main() -> None:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument('policies', nargs='+')
   args = parser.parse_args()
-  env = suite.load('dclaw', 'turn_fixed', seed=_SEED)
-
-  def valve() -> float:
-    return float(env.physics.named.data.qpos['valve/hinge'][0])
-
   for path in args.policies:
-    policy = policies.load(path)
+    policy = policies.load(path, any_variant=True)
+    env = suite.load(
+      'dclaw', 'turn_fixed', seed=_SEED, task_kwargs=policy.task_kwargs_for({})
+    )
+
+    def valve() -> float:
+      return float(env.physics.named.data.qpos['valve/hinge'][0])  # noqa: B023
+
     timestep = env.reset()
     angles = [valve()]
     while not timestep.last():
@@ -42,9 +46,10 @@ def main() -> None:
     print(f'  valve angle every 0.4 s, deg: {every}')
     print(
       f'  left to the goal at the end: {left:.0f} deg; '
-      f'success: {bool(timestep.observation["success"])}'
+      f'success: {bool(timestep.observation["success"])}; action map: '
+      f'{policy.action_map}'
     )
-  env.close()
+    env.close()
 
 
 if __name__ == '__main__':
