@@ -277,21 +277,16 @@ def _trained(curve_end: int | float, run: Run) -> bool:
 
 
 def settled(run: Run) -> bool:
-  """Whether the table holds the run's result under the current protocol
-  and budget. A record of an earlier protocol is made again (from its
-  folder, or from the start where the folder is gone: runs are
-  deterministic); so is one that used up a budget the plan has since
-  raised (it trains on to the new one)."""
+  """Whether the table holds the run's result under the current protocol.
+  A record of an earlier protocol is made again (from its folder, or from
+  the start where the folder is gone: runs are deterministic)."""
   row = recorded_row(run)
-  if row is None or row.get('protocol', 1) < PROTOCOL:
-    return False
-  used_up = row['env_steps'] >= row['budget']
-  return not (used_up and row['budget'] < run.config().steps)
+  return row is not None and row.get('protocol', 1) >= PROTOCOL
 
 
 def done(run: Run) -> bool:
   """Whether the run needs no more training: its test was read, or its
-  record is `settled`."""
+  record is of the current protocol."""
   return finished(run) or settled(run)
 
 
