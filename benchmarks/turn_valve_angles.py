@@ -21,6 +21,10 @@ from robel_dm import policies, suite
 _SEED = 5_000_000  # Apart from training and the table's evaluations.
 
 
+def _valve(env) -> float:
+  return float(env.physics.named.data.qpos['valve/hinge'][0])
+
+
 def main() -> None:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument('policies', nargs='+')
@@ -30,15 +34,11 @@ def main() -> None:
     env = suite.load(
       'dclaw', 'turn_fixed', seed=_SEED, task_kwargs=policy.task_kwargs_for({})
     )
-
-    def valve() -> float:
-      return float(env.physics.named.data.qpos['valve/hinge'][0])  # noqa: B023
-
     timestep = env.reset()
-    angles = [valve()]
+    angles = [_valve(env)]
     while not timestep.last():
       timestep = env.step(policy(timestep))
-      angles.append(valve())
+      angles.append(_valve(env))
     degrees = np.degrees(angles)
     left = abs(degrees[-1] % 360 - 180)  # From the goal, wrapped to +-180.
     print(f'{path}:')
