@@ -434,7 +434,9 @@ def test_an_agent_reading_privileged_state_is_never_recommended():
   }
   choice = selection.choose(by_agent)
   assert choice.algo == 'sac' and choice.shipped['seed'] == 0
-  assert choice.why == 'solves 1 of 3 seeds on validation (the only agent run)'
+  assert choice.why == (
+    'solves 1 of 3 seeds on validation (no other agent recorded)'
+  )
 
 
 def _safety(row, validation_violations, test_violations=0.0):
@@ -468,8 +470,8 @@ def test_safe_solved_runs_are_preferred_on_validation_violations():
   # A safe seed, though another has the higher validation success.
   assert choice.shipped['seed'] == 0
   assert choice.why == (
-    'solves 3 of 3 seeds on validation, 2 of them safely; next best `sac` '
-    '3 of 3, 0 safely'
+    'solves 3 of 3 seeds on validation, 2 of them within 10 violations per '
+    'episode; next best `sac` 3 of 3, 0 within the limit'
   )
   # A Fixed task's validation episode is its test episode.
   fixed = _row('sac', 0, 1.0, 1.0)
@@ -808,3 +810,29 @@ def test_violation_kinds_show_tenths():
   row = {'violations': {'position': 8.6, 'velocity': 17.6, 'current': 0.0}}
   assert report._violations(row) == '8.6 / 17.6 / 0.0'
   assert report._mean_violations([row, row]) == '8.6 / 17.6 / 0.0'
+
+
+def test_a_shipped_policy_over_the_safety_limit_says_so(monkeypatch):
+  bar = baselines.PLAN['safe_violations']
+  shipped = {'algo': 'sac', 'seed': 0}
+  monkeypatch.setattr(baselines, 'shipped_metadata', lambda *_: shipped)
+  for violations, flagged in ((bar, False), (bar + 0.5, True)):
+    row = _safety(_row('sac', 0, 0.9, 0.9), 0.0, violations)
+    row.update(final_episodes=100, deterministic=False)
+    _, reading = report._shipped_cells(
+      'dclaw', 'pose_random', 'valve3', {'sac': [row]}, row
+    )
+    assert reading.endswith(f'(over {bar})') == flagged, reading
+
+
+def test_the_results_give_the_whole_runs_minutes_beside_those_to_80(
+  monkeypatch,
+):
+  monkeypatch.setattr(baselines, 'shipped_metadata', lambda *_: None)
+  rows = [_row('sac', s, 0.9, 0.9, cpu=c) for s, c in enumerate((3, 9, 5))]
+  for row in rows:
+    _safety(row, 0.0)
+    row.update(final_episodes=100, minutes_to_80=None, deterministic=False)
+  table = report.readme_table(rows)
+  assert 'CPU min per run (median)' in table.splitlines()[0]
+  assert '| 5.0 |' in table.splitlines()[2]  # The median of 3, 9 and 5.

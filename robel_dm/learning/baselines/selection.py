@@ -178,9 +178,10 @@ def _why(algo: str, by_agent: dict[str, list[dict]], ranked: list[str]) -> str:
     reading = 'its reported success (protocol 1)'
   text = f'solves {solved} of {len(group)} seeds on {reading}'
   if safe:
-    text += f', {safe} of them safely'
+    limit = baselines.PLAN['safe_violations']
+    text += f', {safe} of them within {limit} violations per episode'
   if len(ranked) < 2:
-    return text + ' (the only agent run)'
+    return text + ' (no other agent recorded)'
   runner_up = by_agent[ranked[1]]
   other_safe = sum(safely_solved(row) for row in runner_up)
   other = sum(validation_success(row) >= bar for row in runner_up)
@@ -189,7 +190,7 @@ def _why(algo: str, by_agent: dict[str, list[dict]], ranked: list[str]) -> str:
   if other_safe < safe:
     return (
       f'{text}; next best `{ranked[1]}` {other} of {len(runner_up)}, '
-      f'{other_safe} safely'
+      f'{other_safe} within the limit'
     )
   mine, theirs = median_steps_to_80(group), median_steps_to_80(runner_up)
   if mine < theirs:
