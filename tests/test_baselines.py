@@ -414,7 +414,7 @@ def test_the_agent_and_run_are_chosen_on_validation_not_test():
 
 def test_the_reason_names_the_readings_it_counts():
   group = [_row('sac', s, 0.9, 0.9) for s in range(3)]
-  assert 'on validation (the only' in selection.choose({'sac': group}).why
+  assert 'on validation (no other' in selection.choose({'sac': group}).why
   del group[0]['validation']  # A protocol-1 seed among protocol-2 ones.
   assert selection.choose({'sac': group}).why.startswith(
     'solves 3 of 3 seeds on validation (protocol-1 seeds: their reported '
