@@ -836,3 +836,13 @@ def test_the_results_give_the_whole_runs_minutes_beside_those_to_80(
   table = report.readme_table(rows)
   assert 'CPU min per run (median)' in table.splitlines()[0]
   assert '| 5.0 |' in table.splitlines()[2]  # The median of 3, 9 and 5.
+
+
+def test_every_run_shows_the_validation_violations_its_choice_read():
+  row = _safety(_row('sac', 0, 0.9, 0.9), 12.5)
+  row.update(budget=1000, env_steps=1000, final_episodes=100,
+             deterministic=False, wall_minutes=1.0,
+             minutes_to_80={'wall': 0.5, 'cpu': 0.25})  # fmt: skip
+  line = report.run_table([row]).splitlines()[2]
+  assert '| 0.90 | 12.5 |' in line  # Validation success and violations.
+  assert '| 1,000 | 0.2 |' in line  # Steps and CPU minutes to 80%.

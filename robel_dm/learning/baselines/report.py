@@ -74,27 +74,35 @@ def _success(row: dict) -> str:
   return f'{row["success"]:.2f} ({low:.2f}-{high:.2f}){_marks(row)}'
 
 
+def _validation(row: dict) -> str:
+  """The record's validation success and violations per episode (all
+  kinds summed) as two cells; '-' where it has no such reading."""
+  success = (
+    f'{row["validation"]["success"]:.2f}' if 'validation' in row else '-'
+  )
+  violations = selection.validation_violations(row)
+  return f'{success} | {"-" if violations is None else f"{violations:.1f}"}'
+
+
 def run_table(rows: list[dict]) -> str:
   """One line per run."""
   lines = [
     '| Task | Agent | Seed | Budget | Env steps | Success (95% interval) '
-    '| Test episodes | Validation success | Mean score | Steps to 80% '
+    '| Test episodes | Validation success | Validation violations / '
+    'episode | Mean score | Steps to 80% | CPU min to 80% '
     '| Violations / episode (position / velocity / current) '
     '| Wall min | CPU min |',
-    '|---|---|---|---|---|---|---|---|---|---|---|---|---|',
+    '|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|',
   ]
   for row in rows:
     episodes = (
       '1 (deterministic)' if row['deterministic'] else row['final_episodes']
     )
-    validation = (
-      f'{row["validation"]["success"]:.2f}' if 'validation' in row else '-'
-    )
     lines.append(
       f'| {_name(row)} | {row["algo"]} | {row["seed"]} '
       f'| {row["budget"]:,} | {row["env_steps"]:,} | {_success(row)} '
-      f'| {episodes} | {validation} | {row["score"]:.3f} '
-      f'| {_training_steps_to_80(row)} '
+      f'| {episodes} | {_validation(row)} | {row["score"]:.3f} '
+      f'| {_training_steps_to_80(row)} | {_training_minutes_to_80(row)} '
       f'| {_violations(row)} | {row["wall_minutes"]:.1f} '
       f'| {row["cpu_minutes"]:.1f} |'
     )
@@ -105,6 +113,18 @@ def _training_steps_to_80(row: dict) -> str:
   """`selection.training_steps_to_80`, or 'never'."""
   steps = selection.training_steps_to_80(row)
   return 'never' if steps is None else f'{steps:,}'
+
+
+def _training_minutes_to_80(row: dict) -> str:
+  """The CPU minutes to the run's first training evaluation at 80%, those
+  of the run it started from included, whatever its test reads; 'never',
+  or '-' where the record has no time to 80%."""
+  if selection.training_steps_to_80(row) is None:
+    return 'never'
+  if not row.get('minutes_to_80'):
+    return '-'
+  source = (row.get('started_from') or {}).get('minutes', {})
+  return f'{source.get("cpu", 0.0) + row["minutes_to_80"]["cpu"]:.1f}'
 
 
 def _spread(group: list[dict]) -> str:
