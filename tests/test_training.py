@@ -169,8 +169,33 @@ def test_resume_continues_with_every_transition(trained_run):
     after.observations[held, 0], after.observations[0, 0]
   )
   resumed = pickle.loads((output / 'env_state.pkl').read_bytes())
-  same_key = np.array_equal(resumed[0][1], state[0][1])
-  assert not (same_key and resumed[0][2] == state[0][2])
+  now, then = resumed[0]['random_state'], state[0]['random_state']
+  assert not (np.array_equal(now[1], then[1]) and now[2] == then[2])
+
+
+@pytest.mark.slow
+def test_a_run_resumed_mid_episode_equals_one_never_stopped(tmp_path):
+  # 520 env steps are 6.5 Pose episodes: the run stops 40 steps into one,
+  # after its first updates (from 500 on), and learns on after resuming.
+  whole, cut = tmp_path / 'whole', tmp_path / 'cut'
+  learning.train(_config(steps=1040, eval_every=520), whole, **QUIET)
+  learning.train(_config(steps=520, eval_every=520), cut, **QUIET)
+  saved = pickle.loads((cut / 'env_state.pkl').read_bytes())
+  assert len(saved[0]['actions']) == 40
+  learning.train(_config(steps=1040, eval_every=520), cut, resume=True, **QUIET)
+  for name in ('policy.npz', 'policy_best.npz'):
+    a, b = np.load(whole / name), np.load(cut / name)
+    assert a.files == b.files
+    for key in a.files:
+      np.testing.assert_array_equal(a[key], b[key], err_msg=f'{name} {key}')
+  rows = [
+    [json.loads(line) for line in (run / 'eval.jsonl').open()]
+    for run in (whole, cut)
+  ]
+  keep = ('env_steps', 'success_rate', 'mean_score', 'mean_return', 'safety')
+  assert [{k: r[k] for k in keep} for r in rows[0]] == [
+    {k: r[k] for k in keep} for r in rows[1]
+  ]
 
 
 @pytest.mark.slow

@@ -230,6 +230,11 @@ class RobelEnv(gymnasium.Env):
     """See `RobelTask.set_randomization_scale`."""
     self._env.task.set_randomization_scale(scale)
 
+  @property
+  def randomization_scale(self) -> float | None:
+    """See `RobelTask.randomization_scale`."""
+    return self._env.task.randomization_scale
+
   def close(self):
     self._env.close()
 

@@ -34,6 +34,8 @@ import pickle
 import time
 from typing import Any
 
+import numpy as np
+
 from robel_dm import evaluation, policies, provenance, suite
 from robel_dm.learning import (
   agents,
@@ -77,22 +79,78 @@ class TrainingEnv(gymnasium.Wrapper):
 
   The stream is seeded once, when the environment is made; the seeds
   Stable-Baselines3 passes to `reset` are ignored, so a resumed run goes on
-  with the stream it saved instead of starting it over.
+  with the stream it saved instead of starting it over. It keeps what its
+  episode in progress began from and the actions taken since
+  (`episode_state`), so that a resumed run can make that episode again to
+  the step where it was saved (`resume_episode`) and go on as if it had
+  never stopped.
   """
 
   def __init__(self, env, penalty: float):
     super().__init__(env)
     self._penalty = penalty
+    self._start = None  # (random state, randomization scale) at reset.
+    self._actions = []
+    self._resumed = None  # What the next reset returns, after a resume.
 
   def reset(self, *, seed=None, options=None):
     del seed
+    if self._resumed is not None:  # The episode `resume_episode` made.
+      resumed, self._resumed = self._resumed, None
+      return resumed
+    robel = self.env.unwrapped
+    self._start = (
+      robel.robel_env.random_state.get_state(),
+      robel.randomization_scale,
+    )
+    self._actions = []
     return self.env.reset(options=options)
 
   def step(self, action):
+    self._actions.append(np.array(action, copy=True))
     observation, reward, terminated, truncated, info = self.env.step(action)
     if self._penalty:
       reward -= self._penalty * sum(info['safety'].values())
     return observation, reward, terminated, truncated, info
+
+  def episode_state(self) -> dict[str, Any]:
+    """What `resume_episode` needs: the episode's start, its actions so
+    far, and the random stream as it stands."""
+    return {
+      'start': self._start,
+      'actions': list(self._actions),
+      'random_state': self.env.unwrapped.robel_env.random_state.get_state(),
+    }
+
+  def resume_episode(self, state: dict[str, Any]) -> bool:
+    """Makes the saved episode again to where it was saved (the simulation
+    is deterministic); the next `reset` goes on from there instead of
+    starting an episode. False, with the random stream set where it was
+    saved, if the episode made again does not end there (the next reset
+    then starts a new episode from it)."""
+    robel = self.env.unwrapped
+    random_state, scale = state['start']
+    robel.robel_env.random_state.set_state(random_state)
+    if scale is not None and scale != robel.randomization_scale:
+      robel.set_randomization_scale(scale)
+    resumed = self.reset()
+    for action in state['actions']:
+      observation, _, _, _, info = self.step(action)
+      resumed = observation, info
+    now = robel.robel_env.random_state.get_state()
+    if _same_random_state(now, state['random_state']):
+      self._resumed = resumed
+      return True
+    robel.robel_env.random_state.set_state(state['random_state'])
+    return False
+
+
+def _same_random_state(a, b) -> bool:
+  """Whether two `RandomState.get_state()` tuples are equal."""
+  return all(
+    np.array_equal(x, y) if isinstance(x, np.ndarray) else x == y
+    for x, y in zip(a, b, strict=True)
+  )
 
 
 def make_env(config: RunConfig, index: int) -> TrainingEnv:
@@ -369,15 +427,25 @@ def _normalized(config: RunConfig, name: str):
   return value
 
 
-def _env_states(vec_env) -> list:
-  return [
-    env.unwrapped.robel_env.random_state.get_state() for env in vec_env.envs
+def _env_states(vec_env) -> list[dict[str, Any]]:
+  return [env.episode_state() for env in vec_env.envs]
+
+
+def _set_env_states(vec_env, states) -> bool:
+  """Puts the training environments where `_env_states` found them: each
+  makes its episode in progress again, for the model to go on from. A run
+  saved before episodes were kept (a random state per environment), or
+  whose episode does not replay, goes on from its random stream with a new
+  episode. Returns whether every episode was made again."""
+  if any(not isinstance(state, dict) for state in states):
+    for env, state in zip(vec_env.envs, states, strict=True):
+      env.unwrapped.robel_env.random_state.set_state(state)
+    return False
+  replayed = [
+    env.resume_episode(state)
+    for env, state in zip(vec_env.envs, states, strict=True)
   ]
-
-
-def _set_env_states(vec_env, states) -> None:
-  for env, state in zip(vec_env.envs, states, strict=True):
-    env.unwrapped.robel_env.random_state.set_state(state)
+  return all(replayed)
 
 
 def _rollout(agent: agents.Agent, model, config: RunConfig) -> int:
@@ -533,7 +601,12 @@ def _reinforce(config: RunConfig, run: Run, data, metadata, resume) -> None:
       replay.grow(model, config.steps + _demo_count(data))
     if (output / ENV_STATE).is_file():
       with open(output / ENV_STATE, 'rb') as file:
-        _set_env_states(vec_env, pickle.load(file))
+        states = pickle.load(file)
+      if not _set_env_states(vec_env, states):
+        run.log(
+          'resuming with a new training episode (the one in progress '
+          'when the run was saved could not be made again)'
+        )
   else:
     model = _new_model(config, vec_env, data)
   if config.budget is not None and model.safety is None:

@@ -468,6 +468,12 @@ class RobelTask(composer.Task):
       self._scene_randomization_scale(self._randomizer.scale)
 
   @property
+  def randomization_scale(self) -> float | None:
+    """The scale `set_randomization_scale` set (1 unless set); None if the
+    task randomizes no physics."""
+    return None if self._randomizer is None else self._randomizer.scale
+
+  @property
   def observation_noise(self) -> float:
     return self._observation_noise
 
