@@ -174,23 +174,34 @@ def test_resume_continues_with_every_transition(trained_run):
 
 
 @pytest.mark.slow
-def test_a_run_resumed_mid_episode_equals_one_never_stopped(tmp_path):
-  # 520 env steps are 6.5 Pose episodes: the run stops 40 steps into one,
-  # after its first updates (from 500 on), and learns on after resuming.
-  whole, cut = tmp_path / 'whole', tmp_path / 'cut'
-  learning.train(_config(steps=1040, eval_every=520), whole, **QUIET)
-  learning.train(_config(steps=520, eval_every=520), cut, **QUIET)
-  saved = pickle.loads((cut / 'env_state.pkl').read_bytes())
-  assert len(saved[0]['actions']) == 40
-  learning.train(_config(steps=1040, eval_every=520), cut, resume=True, **QUIET)
+@pytest.mark.parametrize(
+  ('algo', 'cut', 'into_episode'),
+  [
+    # 520 env steps are 6.5 Pose episodes: SAC stops 40 steps into one,
+    # after its first updates (from 500 on), and learns on after resuming.
+    ('sac', 520, 40),
+    # TRPO (PyTorch: the shared random streams) after its first rollout.
+    ('trpo', 2048, 48),
+  ],
+)
+def test_a_run_resumed_mid_episode_equals_one_never_stopped(
+  tmp_path, algo, cut, into_episode
+):
+  whole, stopped = tmp_path / 'whole', tmp_path / 'stopped'
+  config = _config(algo=algo, steps=2 * cut, eval_every=cut)
+  learning.train(config, whole, **QUIET)
+  learning.train(dataclasses.replace(config, steps=cut), stopped, **QUIET)
+  saved = pickle.loads((stopped / 'env_state.pkl').read_bytes())
+  assert len(saved[0]['actions']) == into_episode
+  learning.train(config, stopped, resume=True, **QUIET)
   for name in ('policy.npz', 'policy_best.npz'):
-    a, b = np.load(whole / name), np.load(cut / name)
+    a, b = np.load(whole / name), np.load(stopped / name)
     assert a.files == b.files
     for key in a.files:
       np.testing.assert_array_equal(a[key], b[key], err_msg=f'{name} {key}')
   rows = [
     [json.loads(line) for line in (run / 'eval.jsonl').open()]
-    for run in (whole, cut)
+    for run in (whole, stopped)
   ]
   keep = ('env_steps', 'success_rate', 'mean_score', 'mean_return', 'safety')
   assert [{k: r[k] for k in keep} for r in rows[0]] == [

@@ -350,6 +350,33 @@ def single_thread() -> None:
   torch.set_num_threads(1)
 
 
+def shared_random_streams() -> dict[str, Any]:
+  """The process-wide random streams the libraries draw from (torch's,
+  numpy's and Python's: SB3's agents sample actions and minibatches from
+  them), which loading a saved model seeds again from the run's seed."""
+  import random  # noqa: PLC0415
+
+  import torch  # noqa: PLC0415
+
+  return {
+    'torch': torch.get_rng_state(),
+    'numpy': np.random.get_state(),
+    'python': random.getstate(),
+  }
+
+
+def set_shared_random_streams(streams: dict[str, Any]) -> None:
+  """Puts the process-wide random streams where `shared_random_streams`
+  found them."""
+  import random  # noqa: PLC0415
+
+  import torch  # noqa: PLC0415
+
+  torch.set_rng_state(streams['torch'])
+  np.random.set_state(streams['numpy'])
+  random.setstate(streams['python'])
+
+
 def check_installed(agent: Agent) -> None:
   """Imports what `agent` needs.
 

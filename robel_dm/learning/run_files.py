@@ -10,6 +10,7 @@ from robel_dm.learning import telemetry
 CHECKPOINT = 'checkpoint.zip'
 REPLAY_BUFFER = 'replay_buffer.pkl'
 ENV_STATE = 'env_state.pkl'
+RANDOM_STREAMS = 'random_streams.pkl'
 POLICY = 'policy.npz'
 BEST_POLICY = 'policy_best.npz'
 EVAL_LOG = 'eval.jsonl'
@@ -23,6 +24,7 @@ RUN_FILES = (
   CHECKPOINT,
   REPLAY_BUFFER,
   ENV_STATE,
+  RANDOM_STREAMS,
   POLICY,
   BEST_POLICY,
   EVAL_LOG,

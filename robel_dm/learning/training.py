@@ -6,9 +6,11 @@ r"""Trains an agent on a robel_dm task.
 Writes into --output_dir:
   * `config.json`: the run's settings (`RunConfig`); --resume refuses to
     continue with different ones;
-  * `checkpoint.zip`, `replay_buffer.pkl` (off-policy agents) and
-    `env_state.pkl` (the training episodes' random streams): what --resume
-    continues from;
+  * `checkpoint.zip`, `replay_buffer.pkl` (off-policy agents),
+    `env_state.pkl` (each training environment's random stream and its
+    episode in progress: where it began and its actions so far) and
+    `random_streams.pkl` (torch's, numpy's and Python's): what --resume
+    continues from, so that a resumed run equals the run never stopped;
   * `policy.npz`: the last deterministic actor, and `policy_best.npz`, the
     best evaluated one (success rate, then mean score), both for
     `robel_dm.policies.load` and `evaluate --policy=...` (numpy only);
@@ -58,6 +60,7 @@ from robel_dm.learning.run_files import (
   EVAL_LOG,
   METADATA,
   POLICY,
+  RANDOM_STREAMS,
   REPLAY_BUFFER,
   check_output_dir,
   clear_output_dir,
@@ -595,18 +598,7 @@ def _reinforce(config: RunConfig, run: Run, data, metadata, resume) -> None:
   )
   checkpoint = output / CHECKPOINT
   if resume and checkpoint.is_file():
-    model = agents.load(agent, checkpoint, vec_env)
-    if agent.replay and (output / REPLAY_BUFFER).is_file():
-      model.load_replay_buffer(str(output / REPLAY_BUFFER))
-      replay.grow(model, config.steps + _demo_count(data))
-    if (output / ENV_STATE).is_file():
-      with open(output / ENV_STATE, 'rb') as file:
-        states = pickle.load(file)
-      if not _set_env_states(vec_env, states):
-        run.log(
-          'resuming with a new training episode (the one in progress '
-          'when the run was saved could not be made again)'
-        )
+    model = _resumed_model(config, run, vec_env, data)
   else:
     model = _new_model(config, vec_env, data)
   if config.budget is not None and model.safety is None:
@@ -636,15 +628,47 @@ def _reinforce(config: RunConfig, run: Run, data, metadata, resume) -> None:
         curriculum_scale(agent.curriculum, model.num_timesteps, steps),
       )
     model.learn(chunk, reset_num_timesteps=False)
-    model.save(str(checkpoint))
-    if agent.replay:
-      model.save_replay_buffer(str(output / REPLAY_BUFFER))
-    with open(output / ENV_STATE, 'wb') as file:
-      pickle.dump(_env_states(vec_env), file)
+    _save(model, agent, output, vec_env)
     row = run.record(agents.numpy_policy(model, metadata), model.num_timesteps)
     if run.solved(row):
       break
   vec_env.close()
+
+
+def _save(model, agent: agents.Agent, output: pathlib.Path, vec_env) -> None:
+  """What `_resumed_model` goes on from: the model, its replay buffer, the
+  training episodes in progress and the shared random streams."""
+  model.save(str(output / CHECKPOINT))
+  if agent.replay:
+    model.save_replay_buffer(str(output / REPLAY_BUFFER))
+  with open(output / ENV_STATE, 'wb') as file:
+    pickle.dump(_env_states(vec_env), file)
+  with open(output / RANDOM_STREAMS, 'wb') as file:
+    pickle.dump(agents.shared_random_streams(), file)
+
+
+def _resumed_model(config: RunConfig, run: Run, vec_env, data):
+  """The model `_save` left in the run's folder, with its replay buffer
+  (grown to the run's budget), the training episodes in progress made
+  again and the shared random streams where they were."""
+  output, agent = run.output, config.agent
+  model = agents.load(agent, output / CHECKPOINT, vec_env)
+  if agent.replay and (output / REPLAY_BUFFER).is_file():
+    model.load_replay_buffer(str(output / REPLAY_BUFFER))
+    replay.grow(model, config.steps + _demo_count(data))
+  if (output / ENV_STATE).is_file():
+    with open(output / ENV_STATE, 'rb') as file:
+      states = pickle.load(file)
+    if not _set_env_states(vec_env, states):
+      run.log(
+        'resuming with a new training episode (the one in progress '
+        'when the run was saved could not be made again)'
+      )
+  # Loading the model seeded them again from the run's seed.
+  if (output / RANDOM_STREAMS).is_file():
+    with open(output / RANDOM_STREAMS, 'rb') as file:
+      agents.set_shared_random_streams(pickle.load(file))
+  return model
 
 
 def curriculum_scale(share: float, done: int, steps: int) -> float:
