@@ -846,3 +846,24 @@ def test_every_run_shows_the_validation_violations_its_choice_read():
   line = report.run_table([row]).splitlines()[2]
   assert '| 0.90 | 12.5 |' in line  # Validation success and violations.
   assert '| 1,000 | 0.2 |' in line  # Steps and CPU minutes to 80%.
+
+
+def test_the_reason_names_an_agent_with_fewer_seeds_that_reads_more():
+  by_agent = {
+    'sac': [_row('sac', s, 0.0, 0.0) for s in range(3)],
+    'sac_curriculum': [_row('sac_curriculum', 0, 0.6, 0.5)],
+  }
+  choice = selection.choose(by_agent)
+  assert choice.algo == 'sac'  # Every seed of the plan run comes first.
+  assert choice.why.endswith(
+    '; `sac_curriculum` reads more (0.60 mean on validation) on 1 of 3 '
+    'seeds recorded'
+  )
+
+
+def test_a_runs_minutes_include_the_run_it_started_from():
+  row = _row('sac_tight', 0, 0.9, 0.9, cpu=12.0)
+  assert selection.run_minutes(row, 'cpu') == 12.0
+  row['started_from'] = {'minutes': {'wall': 20.0, 'cpu': 15.5}}
+  assert selection.run_minutes(row, 'cpu') == 27.5
+  assert report._per_run([row], 'cpu') == '27.5'

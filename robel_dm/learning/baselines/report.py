@@ -123,8 +123,8 @@ def _training_minutes_to_80(row: dict) -> str:
     return 'never'
   if not row.get('minutes_to_80'):
     return '-'
-  source = (row.get('started_from') or {}).get('minutes', {})
-  return f'{source.get("cpu", 0.0) + row["minutes_to_80"]["cpu"]:.1f}'
+  cpu = selection.source_minutes(row, 'cpu') + row['minutes_to_80']['cpu']
+  return f'{cpu:.1f}'
 
 
 def _spread(group: list[dict]) -> str:
@@ -137,10 +137,12 @@ def _spread(group: list[dict]) -> str:
   return f'{mean:.2f} ({min(values):.2f}-{max(values):.2f}){marks}'
 
 
-def _per_run(group: list[dict], minutes: str) -> str:
-  """The median over seeds of a run's wall or CPU minutes (`minutes`: the
-  record's field), the whole run: to 80% and on to its stop or budget."""
-  return f'{statistics.median(row[minutes] for row in group):.1f}'
+def _per_run(group: list[dict], unit: str) -> str:
+  """The median over seeds of a run's wall or CPU minutes (`unit`), the
+  whole run (to 80% and on to its stop or budget) and the run it started
+  from, if any (`sac_warm`, `sac_tight`: it had to be made first)."""
+  minutes = (selection.run_minutes(row, unit) for row in group)
+  return f'{statistics.median(minutes):.1f}'
 
 
 def _to_80(group: list[dict], unit: str) -> str:
@@ -188,7 +190,7 @@ def results_table(rows: list[dict], domain: str) -> str:
       f'| {solved} of {len(group)} '
       f'| {_steps(selection.median_steps_to_80(group))} '
       f'| {_to_80(group, "cpu")} '
-      f'| {_per_run(group, "cpu_minutes")} '
+      f'| {_per_run(group, "cpu")} '
       f'| {_mean_violations(group)} '
       f'| {shipped} '
       f'| {reading} |'
@@ -251,8 +253,8 @@ def summary_table(rows: list[dict]) -> str:
       f'| {solved} of {len(group)} ({safe}) | {_spread(group)} '
       f'| {_mean_violations(group)} '
       f'| {_steps(selection.median_steps_to_80(group))} '
-      f'| {_per_run(group, "wall_minutes")} '
-      f'| {_per_run(group, "cpu_minutes")} |'
+      f'| {_per_run(group, "wall")} '
+      f'| {_per_run(group, "cpu")} |'
     )
   return '\n'.join(lines)
 
@@ -481,7 +483,7 @@ def readme_table(rows: list[dict]) -> str:
       f'| {domain}/{task} | `{choice.algo}` | {_spread(group)} '
       f'| {sum(map(baselines.solved, group))} of {len(group)} '
       f'| {_steps(selection.median_steps_to_80(group))} '
-      f'| {_to_80(group, "cpu")} | {_per_run(group, "cpu_minutes")} '
+      f'| {_to_80(group, "cpu")} | {_per_run(group, "cpu")} '
       f'| {shipped} | {reading} |'
     )
   return '\n'.join(lines)

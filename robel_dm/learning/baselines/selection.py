@@ -73,8 +73,20 @@ def minutes_to_80(row: dict, unit: str) -> float | None:
   started from included; None if not recorded."""
   if not baselines.solved(row) or not row.get('minutes_to_80'):
     return None
+  return source_minutes(row, unit) + row['minutes_to_80'][unit]
+
+
+def run_minutes(row: dict, unit: str) -> float:
+  """The wall or CPU minutes of a run, those of the run it started from
+  included."""
+  return source_minutes(row, unit) + row[f'{unit}_minutes']
+
+
+def source_minutes(row: dict, unit: str) -> float:
+  """The wall or CPU minutes of the run the row's run started from (0 if
+  it started from scratch)."""
   source = (row.get('started_from') or {}).get('minutes', {})
-  return source.get(unit, 0.0) + row['minutes_to_80'][unit]
+  return source.get(unit, 0.0)
 
 
 def median_steps_to_80(group: Iterable[dict]) -> float:
@@ -165,6 +177,26 @@ def _shipped(groups: list[list[dict]]) -> dict | None:
 
 
 def _why(algo: str, by_agent: dict[str, list[dict]], ranked: list[str]) -> str:
+  """Why `algo` is recommended: what its seeds read on validation, which
+  of `_merit`'s terms put it ahead of the next agent, and any agent with
+  fewer seeds recorded that reads more."""
+  text = _why_ahead(algo, by_agent, ranked)
+  mean = statistics.fmean(validation_success(row) for row in by_agent[algo])
+  seeds = len(baselines.PLAN['seeds'])
+  for other in ranked[1:]:
+    group = by_agent[other]
+    other_mean = statistics.fmean(validation_success(row) for row in group)
+    if len(group) < seeds and other_mean > mean:
+      text += (
+        f'; `{other}` reads more ({other_mean:.2f} mean on validation) on '
+        f'{len(group)} of {seeds} seeds recorded'
+      )
+  return text
+
+
+def _why_ahead(
+  algo: str, by_agent: dict[str, list[dict]], ranked: list[str]
+) -> str:
   group = by_agent[algo]
   bar = baselines.PLAN['solved']
   solved = sum(validation_success(row) >= bar for row in group)
@@ -185,6 +217,12 @@ def _why(algo: str, by_agent: dict[str, list[dict]], ranked: list[str]) -> str:
   runner_up = by_agent[ranked[1]]
   other_safe = sum(safely_solved(row) for row in runner_up)
   other = sum(validation_success(row) >= bar for row in runner_up)
+  seeds = len(baselines.PLAN['seeds'])
+  if len(runner_up) < seeds <= len(group):
+    return (
+      f'{text}, on every seed of the plan; next `{ranked[1]}` has '
+      f'{len(runner_up)} of {seeds} seeds recorded'
+    )
   if other < solved:
     return f'{text}; next best `{ranked[1]}` {other} of {len(runner_up)}'
   if other_safe < safe:
@@ -192,10 +230,12 @@ def _why(algo: str, by_agent: dict[str, list[dict]], ranked: list[str]) -> str:
       f'{text}; next best `{ranked[1]}` {other} of {len(runner_up)}, '
       f'{other_safe} within the limit'
     )
-  mine, theirs = median_steps_to_80(group), median_steps_to_80(runner_up)
-  if mine < theirs:
+  mean = statistics.fmean(validation_success(row) for row in group)
+  if mean > statistics.fmean(validation_success(row) for row in runner_up):
+    return f'{text}, with the highest mean success on it'
+  if median_steps_to_80(group) < median_steps_to_80(runner_up):
     return f'{text}, in the fewest env steps to 80% (median over seeds)'
-  return f'{text}, with the highest mean success on it'
+  return f'{text}, with the least CPU time per run (median over seeds)'
 
 
 def best_policy(
