@@ -197,6 +197,8 @@ def _why(algo: str, by_agent: dict[str, list[dict]], ranked: list[str]) -> str:
 def _why_ahead(
   algo: str, by_agent: dict[str, list[dict]], ranked: list[str]
 ) -> str:
+  """What `algo`'s seeds read on validation, and the first of `_merit`'s
+  terms on which it beats the next agent in `ranked`."""
   group = by_agent[algo]
   bar = baselines.PLAN['solved']
   solved = sum(validation_success(row) >= bar for row in group)
