@@ -121,10 +121,8 @@ def _training_minutes_to_80(row: dict) -> str:
   or '-' where the record has no time to 80%."""
   if selection.training_steps_to_80(row) is None:
     return 'never'
-  if not row.get('minutes_to_80'):
-    return '-'
-  cpu = selection.source_minutes(row, 'cpu') + row['minutes_to_80']['cpu']
-  return f'{cpu:.1f}'
+  cpu = selection.training_minutes_to_80(row, 'cpu')
+  return '-' if cpu is None else f'{cpu:.1f}'
 
 
 def _spread(group: list[dict]) -> str:

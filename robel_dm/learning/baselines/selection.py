@@ -26,6 +26,11 @@ def validation_success(row: dict) -> float:
   return row['validation']['success'] if 'validation' in row else row['success']
 
 
+def mean_validation_success(group: Iterable[dict]) -> float:
+  """The mean over a group's seeds of `validation_success`."""
+  return statistics.fmean(validation_success(row) for row in group)
+
+
 def validation_score(row: dict) -> float:
   return row['validation']['score'] if 'validation' in row else row['score']
 
@@ -71,7 +76,14 @@ def steps_to_80(row: dict) -> float:
 def minutes_to_80(row: dict, unit: str) -> float | None:
   """The wall or CPU minutes to 80% of a solved row, those of the run it
   started from included; None if not recorded."""
-  if not baselines.solved(row) or not row.get('minutes_to_80'):
+  return training_minutes_to_80(row, unit) if baselines.solved(row) else None
+
+
+def training_minutes_to_80(row: dict, unit: str) -> float | None:
+  """The wall or CPU minutes to the run's first training evaluation at
+  80%, those of the run it started from included, whatever its test
+  reads; None if not recorded."""
+  if not row.get('minutes_to_80'):
     return None
   return source_minutes(row, unit) + row['minutes_to_80'][unit]
 
@@ -122,7 +134,7 @@ def _merit(group: list[dict], seeds: int) -> tuple:
   solved = sum(
     validation_success(row) >= baselines.PLAN['solved'] for row in group
   )
-  mean = statistics.fmean(validation_success(row) for row in group)
+  mean = mean_validation_success(group)
   cpu = statistics.median(row['cpu_minutes'] for row in group)
   return (
     len(group) >= seeds,
@@ -181,11 +193,11 @@ def _why(algo: str, by_agent: dict[str, list[dict]], ranked: list[str]) -> str:
   of `_merit`'s terms put it ahead of the next agent, and any agent with
   fewer seeds recorded that reads more."""
   text = _why_ahead(algo, by_agent, ranked)
-  mean = statistics.fmean(validation_success(row) for row in by_agent[algo])
+  mean = mean_validation_success(by_agent[algo])
   seeds = len(baselines.PLAN['seeds'])
   for other in ranked[1:]:
     group = by_agent[other]
-    other_mean = statistics.fmean(validation_success(row) for row in group)
+    other_mean = mean_validation_success(group)
     if len(group) < seeds and other_mean > mean:
       text += (
         f'; `{other}` reads more ({other_mean:.2f} mean on validation) on '
@@ -232,8 +244,8 @@ def _why_ahead(
       f'{text}; next best `{ranked[1]}` {other} of {len(runner_up)}, '
       f'{other_safe} within the limit'
     )
-  mean = statistics.fmean(validation_success(row) for row in group)
-  if mean > statistics.fmean(validation_success(row) for row in runner_up):
+  mean = mean_validation_success(group)
+  if mean > mean_validation_success(runner_up):
     return f'{text}, with the highest mean success on it'
   if median_steps_to_80(group) < median_steps_to_80(runner_up):
     return f'{text}, in the fewest env steps to 80% (median over seeds)'
