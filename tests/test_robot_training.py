@@ -555,25 +555,50 @@ def test_behaviour_cloning_uses_the_robot_to_evaluate(tmp_path, demonstrations):
   assert _recorded_steps(tmp_path / robot_training.RECORDING) == 80
 
 
+# The command with its training functions replaced by one that prints the
+# run's config: what the flags make of a run, without training it.
+_COMMAND_CONFIG = """
+import dataclasses, json, sys
+from absl import app
+from robel_dm.commands import train
+from robel_dm.learning import robot_training, training
+
+def _print(config, *args, **kwargs):
+  print('CONFIG ' + json.dumps(dataclasses.asdict(config)))
+
+robot_training.train_on_robot = training.train = _print
+sys.argv = ['train', *sys.argv[1:]]
+train._define_flags()
+app.run(train.main)
+"""
+
+
+def _command_config(*flags: str) -> dict:
+  """The `RunConfig` (as a dict) that `train` with `flags` passes to the
+  library, found by running the command with training left out."""
+  result = subprocess.run(
+    [sys.executable, '-c', _COMMAND_CONFIG, '--domain=dclaw',
+     '--task=pose_fixed', '--output_dir=unused', *flags],
+    capture_output=True, text=True, timeout=300,
+    env={**os.environ, 'MUJOCO_GL': 'egl'},
+  )  # fmt: skip
+  assert result.returncode == 0, result.stderr[-2000:]
+  (line,) = [x for x in result.stdout.splitlines() if x.startswith('CONFIG ')]
+  return json.loads(line.removeprefix('CONFIG '))
+
+
 @pytest.mark.slow
-def test_a_robot_run_learns_with_the_robot_agent_unless_told(tmp_path):
-  root = pathlib.Path(__file__).resolve().parents[1]
-  base = [sys.executable, '-m', 'robel_dm.commands.train', '--domain=dclaw',
-          '--task=pose_fixed', '--steps=16', '--eval_every=16',
-          '--eval_episodes=1']  # fmt: skip
-  for extra, algo in (
-    (['--device_path=virtual'], 'droq'),
+@pytest.mark.parametrize(
+  ('flags', 'algo'),
+  [
+    (['--device_path=virtual'], agents.ROBOT_DEFAULT),
     (['--device_path=virtual', '--algo=sac'], 'sac'),
-    ([], 'sac'),
-  ):
-    output = tmp_path / algo / str(len(extra))
-    subprocess.run(
-      [*base, *extra, f'--output_dir={output}'],
-      cwd=root, check=True, capture_output=True, timeout=600,
-      env={**os.environ, 'MUJOCO_GL': 'egl'},
-    )  # fmt: skip
-    config = json.loads((output / 'config.json').read_text())
-    assert config['algo'] == algo, extra
+    ([], agents.DEFAULT),
+  ],
+)
+def test_a_robot_run_learns_with_the_robot_agent_unless_told(flags, algo):
+  assert agents.ROBOT_DEFAULT == 'droq' and agents.DEFAULT == 'sac'
+  assert _command_config(*flags)['algo'] == algo
 
 
 # --- Starting from a simulation policy, and a safety budget ----------------
@@ -857,17 +882,8 @@ def test_robot_runs_default_to_the_safe_map_and_a_budget():
 
 @pytest.mark.slow
 @pytest.mark.parametrize('flag', [None, '--nosafe_defaults'])
-def test_the_command_line_applies_the_safe_defaults_on_a_robot(tmp_path, flag):
-  result = subprocess.run(
-    [sys.executable, '-m', 'robel_dm.commands.train', '--device_path=virtual',
-     '--domain=dclaw', '--task=pose_fixed', '--steps=80', '--eval_every=80',
-     '--eval_episodes=1', f'--output_dir={tmp_path}',
-     *([flag] if flag else [])],
-    capture_output=True, text=True, timeout=300,
-    env={**os.environ, 'MUJOCO_GL': 'egl'},
-  )  # fmt: skip
-  assert result.returncode == 0, result.stderr[-2000:]
-  saved = json.loads((tmp_path / train_lib.CONFIG).read_text())
+def test_the_command_line_applies_the_safe_defaults_on_a_robot(flag):
+  saved = _command_config('--device_path=virtual', *([flag] if flag else []))
   if flag is None:
     assert saved['task_kwargs'] == {'action_map': 'safe'}
     assert saved['safety_budget'] == 10.0
