@@ -435,7 +435,8 @@ def test_an_agent_reading_privileged_state_is_never_recommended():
   choice = selection.choose(by_agent)
   assert choice.algo == 'sac' and choice.shipped['seed'] == 0
   assert choice.why == (
-    'solves 1 of 3 seeds on validation (no other agent recorded)'
+    'solves 1 of 3 seeds on validation (the other agents recorded read what '
+    'only a simulation knows)'
   )
 
 

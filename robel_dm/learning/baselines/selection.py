@@ -226,6 +226,10 @@ def _why_ahead(
   if safe:
     limit = baselines.PLAN['safe_violations']
     text += f', {safe} of them within {limit} violations per episode'
+  if len(ranked) < 2 and len(by_agent) > len(ranked):
+    return text + (
+      ' (the other agents recorded read what only a simulation knows)'
+    )
   if len(ranked) < 2:
     return text + ' (no other agent recorded)'
   runner_up = by_agent[ranked[1]]
