@@ -226,12 +226,13 @@ def _why_ahead(
   if safe:
     limit = baselines.PLAN['safe_violations']
     text += f', {safe} of them within {limit} violations per episode'
-  if len(ranked) < 2 and len(by_agent) > len(ranked):
-    return text + (
-      ' (the other agents recorded read what only a simulation knows)'
-    )
   if len(ranked) < 2:
-    return text + ' (no other agent recorded)'
+    others = (
+      'the other agents recorded read what only a simulation knows'
+      if len(by_agent) > 1
+      else 'no other agent recorded'
+    )
+    return f'{text} ({others})'
   runner_up = by_agent[ranked[1]]
   other_safe = sum(safely_solved(row) for row in runner_up)
   other = sum(validation_success(row) >= bar for row in runner_up)
