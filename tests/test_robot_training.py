@@ -426,6 +426,35 @@ def test_bad_robot_options_are_refused_before_the_robot_moves(
   assert not (tmp_path / robot_training.RECORDING).exists()
 
 
+_AGENT_CHECK = """
+import sys
+from robel_dm.learning import agents, robot_training, training
+for name in sys.argv[1:]:
+  sys.modules[name] = None
+config = training.RunConfig(domain='dclaw', task='pose_fixed')
+try:
+  robot_training._check_settings(config, robot_training.RobotRunOptions(
+      robot_training.suite.RobotOptions('virtual')))
+except ModuleNotFoundError as error:
+  print('missing', error.name)
+print(*(m for m in ('jax', 'torch', 'sbx') if sys.modules.get(m)))
+"""
+
+
+@pytest.mark.parametrize('missing', [(), ('sbx',), ('torch',)])
+def test_a_robot_run_checks_its_agents_packages_without_importing_them(
+  missing,
+):
+  # The learner process imports them; the actor, which drives the robot,
+  # starts seconds sooner without them, and still names one that is gone.
+  result = subprocess.run(
+    [sys.executable, '-c', _AGENT_CHECK, *missing],
+    capture_output=True, text=True, check=True,
+  )  # fmt: skip
+  lines = result.stdout.splitlines()
+  assert lines == [*(f'missing {name}' for name in missing), '']
+
+
 def test_resuming_with_other_robot_options_is_refused(tmp_path):
   (tmp_path / train_lib.CONFIG).write_text(json.dumps(CONFIG.to_json()))
   (tmp_path / robot_training.ROBOT).write_text(

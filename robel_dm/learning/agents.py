@@ -31,6 +31,7 @@ SAC with its defaults). Every agent learns on one CPU thread.
 """
 
 import dataclasses
+import importlib.util
 import os
 import pathlib
 from typing import Any
@@ -388,6 +389,33 @@ def check_installed(agent: Agent) -> None:
     import optax  # noqa: F401, PLC0415
   else:
     _library_class(agent.library)
+
+
+# The packages each library needs (the first missing one is named).
+_PACKAGES = {
+  SAC_JAX: ('jax', 'flax', 'optax', 'sbx', 'stable_baselines3', 'torch'),
+  SAC_TORCH: ('stable_baselines3', 'torch'),
+  PPO_TORCH: ('stable_baselines3', 'torch'),
+  TRPO_TORCH: ('sb3_contrib', 'stable_baselines3', 'torch'),
+  IMITATION_JAX: ('jax', 'optax'),
+}
+
+
+def check_available(agent: Agent) -> None:
+  """Checks that the packages `agent` needs are installed without
+  importing them (seconds for JAX and torch): for a process that leaves
+  the learning to another, as a robot's actor does.
+
+  Raises:
+    ModuleNotFoundError: naming the first missing package.
+  """
+  for name in _PACKAGES[agent.library]:
+    try:
+      found = importlib.util.find_spec(name) is not None
+    except ValueError:  # Imported once and then set to None in sys.modules.
+      found = False
+    if not found:
+      raise ModuleNotFoundError(f'No module named {name!r}', name=name)
 
 
 def _library_class(library: str):

@@ -429,7 +429,8 @@ def _check_settings(
     )
   if config.num_envs != 1:
     raise ValueError('a robot is one environment: --num_envs must be 1')
-  agents.check_installed(config.agent)
+  # The learner process imports the agent's library; the actor need not.
+  agents.check_available(config.agent)
 
 
 def _prepare_output_dir(
