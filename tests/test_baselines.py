@@ -417,8 +417,8 @@ def test_the_reason_names_the_readings_it_counts():
   assert 'on validation (no other' in selection.choose({'sac': group}).why
   del group[0]['validation']  # A protocol-1 seed among protocol-2 ones.
   assert selection.choose({'sac': group}).why.startswith(
-    'solves 3 of 3 seeds on validation (protocol-1 seeds: their reported '
-    'success)'
+    'solves 3 of 3 seeds on validation (a seed recorded under protocol 1 '
+    'has no validation reading: its reported success stands in)'
   )
   for row in group:
     row.pop('validation', None)

@@ -67,11 +67,13 @@ def _marks(row: dict) -> str:
   return marks
 
 
-def _success(row: dict) -> str:
+def _success(row: dict, label: str = '') -> str:
+  """The record's test success and its 95% interval, the interval's
+  numbers after `label`."""
   low, high = _interval(row)
   if low == high:
     return f'{row["success"]:.2f}{_marks(row)}'
-  return f'{row["success"]:.2f} ({low:.2f}-{high:.2f}){_marks(row)}'
+  return f'{row["success"]:.2f} ({label}{low:.2f}-{high:.2f}){_marks(row)}'
 
 
 def _validation(row: dict) -> str:
@@ -132,7 +134,7 @@ def _spread(group: list[dict]) -> str:
   marks = ''.join(sorted({m for row in group for m in _marks(row)}))
   if len(values) == 1:
     return f'{mean:.2f}{marks}'
-  return f'{mean:.2f} ({min(values):.2f}-{max(values):.2f}){marks}'
+  return f'{mean:.2f} (seeds {min(values):.2f}-{max(values):.2f}){marks}'
 
 
 def _per_run(group: list[dict], unit: str) -> str:
@@ -164,11 +166,11 @@ def results_table(rows: list[dict], domain: str) -> str:
   """One line per task of a robot: the recommended agent and what it
   gives (`selection.choose`), and the policy shipped."""
   lines = [
-    '| Task | Recommended agent (why) | Success: mean over seeds (lowest-'
-    'highest) | Seeds solved (test) | Env steps to 80% (median) | CPU min '
-    'to 80% (median) | CPU min per run (median) | Violations / episode '
-    '(pos / vel / cur) | Shipped policy | Shipped: test success, '
-    'violations / episode |',
+    '| Task | Recommended agent (why) | Success: mean over seeds (lowest '
+    'and highest seed) | Seeds solved (test) | Env steps to 80% (median) '
+    '| CPU min to 80% (median) | CPU min per run (median) '
+    '| Violations / episode (pos / vel / cur) | Shipped policy '
+    '| Shipped: test success, violations / episode |',
     '|---|---|---|---|---|---|---|---|---|---|',
   ]
   for (dom, task, valve), by_agent in sorted(
@@ -216,7 +218,7 @@ def _shipped_cells(
     row for row in by_agent[made['algo']] if row['seed'] == made['seed']
   )
   violations = sum(record['violations'].values())
-  reading = f'{_success(record)}, {violations:.1f}'
+  reading = f'{_success(record, "95%: ")}, {violations:.1f}'
   if violations > baselines.PLAN['safe_violations']:
     reading += f' (over {baselines.PLAN["safe_violations"]})'
   return cell, reading
@@ -236,7 +238,7 @@ def summary_table(rows: list[dict]) -> str:
   lines = [
     '| Task | Agent | Budget (env steps; bc: epochs) | Seeds solved on '
     f'test (within {baselines.PLAN["safe_violations"]} violations) '
-    '| Success: mean (lowest-highest) '
+    '| Success: mean over seeds (lowest and highest seed) '
     '| Violations / episode '
     '(pos / vel / cur) | Env steps to 80% (median) '
     '| Wall min per run (median) | CPU min per run (median) |',
@@ -462,7 +464,8 @@ def readme_table(rows: list[dict]) -> str:
   """The README's summary: per task, the recommended agent, its success
   and cost to 80%, and the policy shipped with its own test reading."""
   lines = [
-    '| Task | Agent | Success (mean over seeds) | Seeds solved (test) '
+    '| Task | Agent | Success: mean (seeds: lowest-highest) '
+    '| Seeds solved (test) '
     '| Env steps to 80% (median) | CPU min to 80% (median) | CPU min per '
     'run (median) | Shipped | Shipped: test success, violations / episode |',
     '|---|---|---|---|---|---|---|---|---|',

@@ -219,7 +219,10 @@ def _why_ahead(
   if with_validation == len(group):
     reading = 'validation'
   elif with_validation:
-    reading = 'validation (protocol-1 seeds: their reported success)'
+    reading = (
+      'validation (a seed recorded under protocol 1 has no validation '
+      'reading: its reported success stands in)'
+    )
   else:
     reading = 'its reported success (protocol 1)'
   text = f'solves {solved} of {len(group)} seeds on {reading}'
@@ -239,8 +242,8 @@ def _why_ahead(
   seeds = len(baselines.PLAN['seeds'])
   if len(runner_up) < seeds <= len(group):
     return (
-      f'{text}, on every seed of the plan; next `{ranked[1]}` has '
-      f'{len(runner_up)} of {seeds} seeds recorded'
+      f'{text}, all {seeds} of its planned seeds recorded; next '
+      f'`{ranked[1]}` has {len(runner_up)} of {seeds} recorded'
     )
   if other < solved:
     return f'{text}; next best `{ranked[1]}` {other} of {len(runner_up)}'
