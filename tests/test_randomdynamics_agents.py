@@ -34,6 +34,11 @@ def test_which_env_reads_the_privileged_observation():
   assert asymmetric.policy_task_kwargs == {}
   assert privileged.training_task_kwargs == {'privileged': True}
   assert privileged.policy_task_kwargs == {'privileged': True}
+  # The privileged actor of the dynamics alone reads them in training and
+  # in every evaluation of its policy.
+  dynamics = _config('sac_privileged_dynamics')
+  assert dynamics.training_task_kwargs == {'privileged': 'dynamics'}
+  assert dynamics.policy_task_kwargs == {'privileged': 'dynamics'}
   assert plain.training_task_kwargs == plain.policy_task_kwargs == {}
 
 
@@ -77,7 +82,9 @@ def _leaves(tree):
     yield np.asarray(tree)
 
 
-@pytest.mark.parametrize('algo', ['sac_asymmetric', 'sac_privileged'])
+@pytest.mark.parametrize(
+  'algo', ['sac_asymmetric', 'sac_privileged', 'sac_privileged_dynamics']
+)
 def test_privileged_agents_need_a_randomized_task(algo):
   config = run_config.RunConfig(domain='dclaw', task='pose_random', algo=algo)
   with pytest.raises(ValueError, match='needs a RandomDynamics task, not'):

@@ -23,6 +23,8 @@ from a named library (or, for behaviour cloning, this package):
 | `sac_asymmetric` | off-policy | `sac`, critics observing the privileged  |
 |             |                 | state (RandomDynamics)                   |
 | `sac_privileged` | off-policy | `sac`, actor and critics observing it    |
+| `sac_privileged_dynamics` | off-policy | the same, seeing the dynamics |
+|             |                 | only (not the D'Kitty's terrain)         |
 | `sac_curriculum` | off-policy | `sac`, randomization grown by degrees    |
 
 `sac` is the default: the fastest way to ROBEL's success found on two CPU
@@ -264,6 +266,22 @@ AGENTS: dict[str, Agent] = {
       replay=True,
       library=SAC_JAX,
       privileged=PRIVILEGED_ACTOR,
+    ),
+    Agent(
+      'sac_privileged_dynamics',
+      OFF_POLICY,
+      'SAC',
+      'sbx-rl 0.28.0 SAC (JAX), learning rate 1e-3, actor and critics '
+      "observing the episode's randomized dynamics, not the terrain "
+      '(simulation only: a ceiling for a policy that does not know them)',
+      (256, 256),
+      _SAC,
+      replay=True,
+      library=SAC_JAX,
+      privileged=PRIVILEGED_ACTOR,
+      # Networks that see the terrain learned nothing on Orient
+      # RandomDynamics: this one asks what knowing the physics is worth.
+      privileged_view='dynamics',
     ),
     Agent(
       'sac_asymmetric',
