@@ -141,6 +141,20 @@ _SAC = {**_SAC_LR3E4, 'learning_rate': 1e-3}
 _DROQ = {**_SAC, 'gradient_steps': 80}
 _DROQ_CRITICS = {'dropout_rate': 0.01, 'layer_norm': True}
 
+_PRIVILEGED = Agent(
+  'sac_privileged',
+  OFF_POLICY,
+  'SAC',
+  'sbx-rl 0.28.0 SAC (JAX), learning rate 1e-3, actor and critics '
+  "observing the episode's randomized dynamics and terrain (simulation "
+  'only: a ceiling)',
+  (256, 256),
+  _SAC,
+  replay=True,
+  library=SAC_JAX,
+  privileged=PRIVILEGED_ACTOR,
+)
+
 AGENTS: dict[str, Agent] = {
   agent.name: agent
   for agent in (
@@ -254,31 +268,13 @@ AGENTS: dict[str, Agent] = {
       safety_budget=10.0,
       starts_from='same',
     ),
-    Agent(
-      'sac_privileged',
-      OFF_POLICY,
-      'SAC',
-      'sbx-rl 0.28.0 SAC (JAX), learning rate 1e-3, actor and critics '
-      "observing the episode's randomized dynamics and terrain (simulation "
-      'only: a ceiling)',
-      (256, 256),
-      _SAC,
-      replay=True,
-      library=SAC_JAX,
-      privileged=PRIVILEGED_ACTOR,
-    ),
-    Agent(
-      'sac_privileged_dynamics',
-      OFF_POLICY,
-      'SAC',
-      'sbx-rl 0.28.0 SAC (JAX), learning rate 1e-3, actor and critics '
-      "observing the episode's randomized dynamics, not the terrain "
+    _PRIVILEGED,
+    dataclasses.replace(
+      _PRIVILEGED,
+      name='sac_privileged_dynamics',
+      source='sbx-rl 0.28.0 SAC (JAX), learning rate 1e-3, actor and '
+      "critics observing the episode's randomized dynamics, not the terrain "
       '(simulation only: a ceiling for a policy that does not know them)',
-      (256, 256),
-      _SAC,
-      replay=True,
-      library=SAC_JAX,
-      privileged=PRIVILEGED_ACTOR,
       # Networks that see the terrain learned nothing on Orient
       # RandomDynamics: this one asks what knowing the physics is worth.
       privileged_view='dynamics',
