@@ -566,7 +566,9 @@ def test_the_report_is_derived_from_the_records(sandbox):
   assert '| dclaw/pose_random | sac | 0 | 16 | 16 |' in text
   # Per robot, the recommended agent of each task.
   results = text.split('<!-- results dclaw -->')[1].split('<!-- /')[0]
-  assert '| pose_random | `sac`: solves' in results
+  assert (
+    '| pose_random | unsolved on validation (closest: `sac`): solves' in results
+  )
   manifest = json.loads((baselines.FIGURES / 'figures.json').read_text())
   assert manifest['records_sha256'] == report.records_digest()
   assert '1 (deterministic)' in text
@@ -860,6 +862,51 @@ def test_the_reason_names_an_agent_with_fewer_seeds_that_reads_more():
     '; `sac_curriculum` reads more (0.60 mean on validation) on 1 of 3 '
     'seeds recorded'
   )
+
+
+def test_a_mean_over_seeds_counts_its_marked_seeds_in_words():
+  near = _row('sac', 0, 0.8, 0.8) | {'success_interval': [0.71, 0.87]}
+  clear = _row('sac', 1, 0.9, 0.97) | {'success_interval': [0.92, 0.99]}
+  old = _row('sac', 2, 0.0, 0.0) | {'protocol': 1, 'final_episodes': 50}
+  old.update(deterministic=False, success_interval=[0.0, 0.07])
+  assert report._spread([near, clear]) == '0.89 (seeds 0.80-0.97; 1 seed ~0.8)'
+  assert report._spread([near, clear, old]) == (
+    '0.59 (seeds 0.00-0.97; 1 seed ~0.8; 1 seed of protocol 1 †)'
+  )
+  assert report._spread([near]) == '0.80~'  # A single run's own mark.
+
+
+def test_a_task_no_seed_solves_names_its_agent_as_the_closest_try():
+  by_agent = {'sac': [_row('sac', s, 0.7, 0.9) for s in range(3)]}
+  unsolved = selection.choose(by_agent)
+  assert report._agent(unsolved, by_agent) == (
+    'unsolved on validation (closest: `sac`)'
+  )
+  by_agent['sac_demos'] = [_row('sac_demos', 0, 0.8, 0.5)]  # 1 of 3 seeds.
+  assert report._agent(selection.choose(by_agent), by_agent) == (
+    '`sac` (no seed solved on validation)'
+  )
+  solved = {'sac': [_row('sac', 0, 0.8, 0.5)]}
+  assert report._agent(selection.choose(solved), solved) == '`sac`'
+
+
+def test_the_reason_says_why_an_agent_with_fewer_seeds_ranks_below():
+  by_agent = {
+    'sac': [_row('sac', s, 0.0, 0.0) for s in range(3)],
+    'sac_lr3e4': [_row('sac_lr3e4', s, 0.0, 0.0) for s in range(2)],
+  }
+  assert selection.choose(by_agent).why.endswith(
+    'ranked above `sac_lr3e4`, which has 2 of its 3 planned seeds recorded '
+    'so far (agents with every seed recorded rank first)'
+  )
+
+
+def test_a_run_line_shows_its_own_minutes_and_its_source_runs_apart():
+  row = _row('sac_tight', 0, 0.9, 0.9, cpu=12.0) | {'wall_minutes': 14.0}
+  assert report._own_minutes(row, 'cpu') == '12.0'
+  row['started_from'] = {'minutes': {'wall': 20.0, 'cpu': 15.5}}
+  assert report._own_minutes(row, 'cpu') == '12.0 (+ 15.5 source run)'
+  assert report._own_minutes(row, 'wall') == '14.0 (+ 20.0 source run)'
 
 
 def test_a_runs_minutes_include_the_run_it_started_from():

@@ -102,13 +102,22 @@ def run_table(rows: list[dict]) -> str:
     )
     lines.append(
       f'| {_name(row)} | {row["algo"]} | {row["seed"]} '
-      f'| {row["budget"]:,} | {row["env_steps"]:,} | {_success(row)} '
+      f'| {row["budget"]:,} | {row["env_steps"]:,} '
+      f'| {_success(row, "95%: ")} '
       f'| {episodes} | {_validation(row)} | {row["score"]:.3f} '
       f'| {_training_steps_to_80(row)} | {_training_minutes_to_80(row)} '
-      f'| {_violations(row)} | {row["wall_minutes"]:.1f} '
-      f'| {row["cpu_minutes"]:.1f} |'
+      f'| {_violations(row)} | {_own_minutes(row, "wall")} '
+      f'| {_own_minutes(row, "cpu")} |'
     )
   return '\n'.join(lines)
+
+
+def _own_minutes(row: dict, unit: str) -> str:
+  """The run's wall or CPU minutes, and those of the run it started from
+  (`sac_warm`, `sac_tight`) beside them, which the per-agent tables add."""
+  own = f'{row[f"{unit}_minutes"]:.1f}'
+  source = selection.source_minutes(row, unit)
+  return f'{own} (+ {source:.1f} source run)' if source else own
 
 
 def _training_steps_to_80(row: dict) -> str:
@@ -128,13 +137,19 @@ def _training_minutes_to_80(row: dict) -> str:
 
 
 def _spread(group: list[dict]) -> str:
-  """Mean success over seeds, and the lowest and highest seed."""
+  """Mean success over seeds, the lowest and highest seed, and how many
+  seeds carry each mark (in words: a mark beside a mean would read as the
+  mean's)."""
   values = [row['success'] for row in group]
   mean = statistics.fmean(values)
-  marks = ''.join(sorted({m for row in group for m in _marks(row)}))
   if len(values) == 1:
-    return f'{mean:.2f}{marks}'
-  return f'{mean:.2f} (seeds {min(values):.2f}-{max(values):.2f}){marks}'
+    return f'{mean:.2f}{_marks(group[0])}'
+  cell = f'{mean:.2f} (seeds {min(values):.2f}-{max(values):.2f}'
+  for mark, meaning in (('~', '~0.8'), ('†', 'of protocol 1 †')):
+    count = sum(mark in _marks(row) for row in group)
+    if count:
+      cell += f'; {count} seed{"s" * (count > 1)} {meaning}'
+  return cell + ')'
 
 
 def _per_run(group: list[dict], unit: str) -> str:
@@ -186,7 +201,7 @@ def results_table(rows: list[dict], domain: str) -> str:
       dom, task, valve, by_agent, choice.shipped
     )
     lines.append(
-      f'| {name} | `{choice.algo}`: {choice.why} | {_spread(group)} '
+      f'| {name} | {_agent(choice, by_agent)}: {choice.why} | {_spread(group)} '
       f'| {solved} of {len(group)} '
       f'| {_steps(selection.median_steps_to_80(group))} '
       f'| {_to_80(group, "cpu")} '
@@ -196,6 +211,25 @@ def results_table(rows: list[dict], domain: str) -> str:
       f'| {reading} |'
     )
   return '\n'.join(lines)
+
+
+def _agent(choice: selection.Choice, by_agent: dict[str, list[dict]]) -> str:
+  """The recommended agent; marked as a try, not as an agent that works,
+  where none of its seeds solves the task on validation."""
+
+  def solves(rows) -> bool:
+    bar = baselines.PLAN['solved']
+    return any(selection.validation_success(row) >= bar for row in rows)
+
+  if solves(choice.rows):
+    return f'`{choice.algo}`'
+  if any(
+    solves(rows)
+    for algo, rows in by_agent.items()
+    if selection.for_robots(algo)
+  ):
+    return f'`{choice.algo}` (no seed solved on validation)'
+  return f'unsolved on validation (closest: `{choice.algo}`)'
 
 
 def _shipped_cells(
@@ -481,7 +515,7 @@ def readme_table(rows: list[dict]) -> str:
       domain, task, valve, by_agent, choice.shipped
     )
     lines.append(
-      f'| {domain}/{task} | `{choice.algo}` | {_spread(group)} '
+      f'| {domain}/{task} | {_agent(choice, by_agent)} | {_spread(group)} '
       f'| {sum(map(baselines.solved, group))} of {len(group)} '
       f'| {_steps(selection.median_steps_to_80(group))} '
       f'| {_to_80(group, "cpu")} | {_per_run(group, "cpu")} '

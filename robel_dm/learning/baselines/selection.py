@@ -242,8 +242,9 @@ def _why_ahead(
   seeds = len(baselines.PLAN['seeds'])
   if len(runner_up) < seeds <= len(group):
     return (
-      f'{text}, all {seeds} of its planned seeds recorded; next '
-      f'`{ranked[1]}` has {len(runner_up)} of {seeds} recorded'
+      f'{text}; ranked above `{ranked[1]}`, which has {len(runner_up)} of '
+      f'its {seeds} planned seeds recorded so far (agents with every '
+      'seed recorded rank first)'
     )
   if other < solved:
     return f'{text}; next best `{ranked[1]}` {other} of {len(runner_up)}'
