@@ -778,6 +778,15 @@ def test_a_tightened_run_starts_from_the_same_task_under_a_budget():
   assert config.steps != baselines.PLAN['tasks']['dclaw/screw_random']['steps']
 
 
+def test_a_task_can_give_one_agent_a_budget_of_its_own():
+  task = baselines.PLAN['tasks']['dkitty/walk_random_dynamics']
+  longer = baselines.Run('dkitty', 'walk_random_dynamics', 'sac_curriculum', 1)
+  assert longer.config().steps == task['agent_steps']['sac_curriculum']
+  assert longer.config().steps != task['steps']
+  default = baselines.Run('dkitty', 'walk_random_dynamics', 'sac', 1)
+  assert default.config().steps == task['steps']
+
+
 def test_the_constrained_agent_learns_under_its_budget():
   config = baselines.Run('dclaw', 'pose_fixed', 'sac_safe', 0).config()
   assert config.budget == 10.0

@@ -106,8 +106,11 @@ class Run:
 
     settings = PLAN['tasks'][f'{self.domain}/{self.task}']
     steps, every = settings['steps'], settings['eval_every']
-    # An agent that starts from a trained policy may have a budget of its own.
-    steps = PLAN.get('agent_steps', {}).get(self.algo, steps)
+    # An agent may have a budget of its own: on every task (one that starts
+    # from a trained policy), or on one task (where its curve still rose).
+    steps = settings.get('agent_steps', {}).get(
+      self.algo, PLAN.get('agent_steps', {}).get(self.algo, steps)
+    )
     kind = agents.get(self.algo).kind
     if kind == agents.ON_POLICY:
       steps = min(steps * PLAN['on_policy_factor'], PLAN['on_policy_max_steps'])
