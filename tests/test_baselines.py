@@ -834,7 +834,7 @@ def test_a_shipped_policy_over_the_safety_limit_says_so(monkeypatch):
     _, reading = report._shipped_cells(
       'dclaw', 'pose_random', 'valve3', {'sac': [row]}, row
     )
-    assert reading.endswith(f'(over {bar})') == flagged, reading
+    assert reading.endswith(f'(over {bar} violations)') == flagged, reading
 
 
 def test_the_results_give_the_whole_runs_minutes_beside_those_to_80(

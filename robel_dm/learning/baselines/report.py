@@ -254,7 +254,7 @@ def _shipped_cells(
   violations = sum(record['violations'].values())
   reading = f'{_success(record, "95%: ")}, {violations:.1f}'
   if violations > baselines.PLAN['safe_violations']:
-    reading += f' (over {baselines.PLAN["safe_violations"]})'
+    reading += f' (over {baselines.PLAN["safe_violations"]} violations)'
   return cell, reading
 
 
