@@ -906,7 +906,7 @@ def test_the_reason_says_why_an_agent_with_fewer_seeds_ranks_below():
   }
   assert selection.choose(by_agent).why.endswith(
     'ranked above `sac_lr3e4`, which has 2 of its 3 planned seeds recorded '
-    'so far (agents with every seed recorded rank first)'
+    '(agents with every seed recorded rank first)'
   )
 
 

@@ -243,7 +243,7 @@ def _why_ahead(
   if len(runner_up) < seeds <= len(group):
     return (
       f'{text}; ranked above `{ranked[1]}`, which has {len(runner_up)} of '
-      f'its {seeds} planned seeds recorded so far (agents with every '
+      f'its {seeds} planned seeds recorded (agents with every '
       'seed recorded rank first)'
     )
   if other < solved:
