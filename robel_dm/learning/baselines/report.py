@@ -216,17 +216,13 @@ def results_table(rows: list[dict], domain: str) -> str:
 def _agent(choice: selection.Choice, by_agent: dict[str, list[dict]]) -> str:
   """The recommended agent; marked as a try, not as an agent that works,
   where none of its seeds solves the task on validation."""
-
-  def solves(rows) -> bool:
-    bar = baselines.PLAN['solved']
-    return any(selection.validation_success(row) >= bar for row in rows)
-
-  if solves(choice.rows):
+  if any(map(selection.solved_on_validation, choice.rows)):
     return f'`{choice.algo}`'
   if any(
-    solves(rows)
+    selection.solved_on_validation(row)
     for algo, rows in by_agent.items()
     if selection.for_robots(algo)
+    for row in rows
   ):
     return f'`{choice.algo}` (no seed solved on validation)'
   return f'unsolved on validation (closest: `{choice.algo}`)'

@@ -26,6 +26,11 @@ def validation_success(row: dict) -> float:
   return row['validation']['success'] if 'validation' in row else row['success']
 
 
+def solved_on_validation(row: dict) -> bool:
+  """Whether the row's `validation_success` reaches the plan's bar."""
+  return validation_success(row) >= baselines.PLAN['solved']
+
+
 def mean_validation_success(group: Iterable[dict]) -> float:
   """The mean over a group's seeds of `validation_success`."""
   return statistics.fmean(validation_success(row) for row in group)
@@ -50,7 +55,7 @@ def safely_solved(row: dict) -> bool:
   """Solved on validation within the plan's safe violations per episode."""
   violations = validation_violations(row)
   return (
-    validation_success(row) >= baselines.PLAN['solved']
+    solved_on_validation(row)
     and violations is not None
     and violations <= baselines.PLAN['safe_violations']
   )
@@ -131,9 +136,7 @@ def _merit(group: list[dict], seeds: int) -> tuple:
   validation, seeds of them solved safely, mean validation success, fewer
   env steps to 80% (median over seeds), less CPU time."""
   safe = sum(safely_solved(row) for row in group)
-  solved = sum(
-    validation_success(row) >= baselines.PLAN['solved'] for row in group
-  )
+  solved = sum(map(solved_on_validation, group))
   mean = mean_validation_success(group)
   cpu = statistics.median(row['cpu_minutes'] for row in group)
   return (
@@ -185,7 +188,7 @@ def _shipped(groups: list[list[dict]]) -> dict | None:
     if safe:
       return max(safe, key=merit)
   best = max(groups[0], key=merit)
-  return best if validation_success(best) >= baselines.PLAN['solved'] else None
+  return best if solved_on_validation(best) else None
 
 
 def _why(algo: str, by_agent: dict[str, list[dict]], ranked: list[str]) -> str:
@@ -212,8 +215,7 @@ def _why_ahead(
   """What `algo`'s seeds read on validation, and the first of `_merit`'s
   terms on which it beats the next agent in `ranked`."""
   group = by_agent[algo]
-  bar = baselines.PLAN['solved']
-  solved = sum(validation_success(row) >= bar for row in group)
+  solved = sum(map(solved_on_validation, group))
   safe = sum(safely_solved(row) for row in group)
   with_validation = sum('validation' in row for row in group)
   if with_validation == len(group):
@@ -238,7 +240,7 @@ def _why_ahead(
     return f'{text} ({others})'
   runner_up = by_agent[ranked[1]]
   other_safe = sum(safely_solved(row) for row in runner_up)
-  other = sum(validation_success(row) >= bar for row in runner_up)
+  other = sum(map(solved_on_validation, runner_up))
   seeds = len(baselines.PLAN['seeds'])
   if len(runner_up) < seeds <= len(group):
     return (
