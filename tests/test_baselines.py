@@ -878,9 +878,11 @@ def test_a_mean_over_seeds_counts_its_marked_seeds_in_words():
   clear = _row('sac', 1, 0.9, 0.97) | {'success_interval': [0.92, 0.99]}
   old = _row('sac', 2, 0.0, 0.0) | {'protocol': 1, 'final_episodes': 50}
   old.update(deterministic=False, success_interval=[0.0, 0.07])
-  assert report._spread([near, clear]) == '0.89 (seeds 0.80-0.97; 1 seed ~0.8)'
+  assert report._spread([near, clear]) == (
+    '0.89 (seeds 0.80-0.97; 1 seed borderline ~)'
+  )
   assert report._spread([near, clear, old]) == (
-    '0.59 (seeds 0.00-0.97; 1 seed ~0.8; 1 seed of protocol 1 †)'
+    '0.59 (seeds 0.00-0.97; 1 seed borderline ~; 1 seed of protocol 1 †)'
   )
   assert report._spread([near]) == '0.80~'  # A single run's own mark.
 
@@ -910,12 +912,42 @@ def test_the_reason_says_why_an_agent_with_fewer_seeds_ranks_below():
   )
 
 
+def test_the_reason_names_the_readings_where_they_decide_too():
+  # `sac` would rank first with or without the missing seed: the reason
+  # gives the seeds solved, not that a seed is missing.
+  by_agent = {
+    'sac': [_row('sac', s, v, v) for s, v in enumerate((0.85, 0.8, 0.6))],
+    'sac_curriculum': [
+      _row('sac_curriculum', s, v, v) for s, v in enumerate((0.76, 0.74))
+    ],
+  }
+  assert selection.choose(by_agent).why == (
+    'solves 2 of 3 seeds on validation; next best `sac_curriculum` 0 of 2 '
+    '(2 of its 3 planned seeds recorded)'
+  )
+
+
 def test_a_run_line_shows_its_own_minutes_and_its_source_runs_apart():
   row = _row('sac_tight', 0, 0.9, 0.9, cpu=12.0) | {'wall_minutes': 14.0}
   assert report._own_minutes(row, 'cpu') == '12.0'
   row['started_from'] = {'minutes': {'wall': 20.0, 'cpu': 15.5}}
   assert report._own_minutes(row, 'cpu') == '12.0 (+ 15.5 source run)'
   assert report._own_minutes(row, 'wall') == '14.0 (+ 20.0 source run)'
+
+
+def test_a_time_to_80_reached_in_the_source_run_says_so():
+  source = {'env_steps': 270_000, 'minutes': {'wall': 20.0, 'cpu': 15.5}}
+  group = [
+    _row('sac_tight', s, 0.9, 0.9, steps=0, cpu=12.0)
+    | {'started_from': source, 'minutes_to_80': {'wall': 0.0, 'cpu': 0.0}}
+    for s in range(3)
+  ]
+  assert report._steps_to_80(group) == '270,000 (in its source run)'
+  assert report._cpu_to_80(group) == '15.5 (in its source run)'
+  group[1]['steps_to_80'] = 10_000  # One seed got there on its own.
+  assert report._steps_to_80(group) == '270,000'
+  fresh = [_row('sac', s, 0.9, 0.9, steps=5000) for s in range(3)]
+  assert report._steps_to_80(fresh) == '5,000'
 
 
 def test_a_runs_minutes_include_the_run_it_started_from():

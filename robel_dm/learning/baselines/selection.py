@@ -71,6 +71,13 @@ def training_steps_to_80(row: dict) -> int | None:
   return before + row['steps_to_80']
 
 
+def reached_80_in_source(row: dict) -> bool:
+  """Whether the run's source run had reached 80% before it started (its
+  first training evaluation reads 80%): its time to 80% is the source's,
+  and what the run adds costs the rest of it."""
+  return bool(row.get('started_from')) and row['steps_to_80'] == 0
+
+
 def steps_to_80(row: dict) -> float:
   """`training_steps_to_80` of a solved row; UNSOLVED for a row whose
   reported success is below the bar (or that never got there)."""
@@ -242,25 +249,41 @@ def _why_ahead(
   other_safe = sum(safely_solved(row) for row in runner_up)
   other = sum(map(solved_on_validation, runner_up))
   seeds = len(baselines.PLAN['seeds'])
-  if len(runner_up) < seeds <= len(group):
+  incomplete = len(runner_up) < seeds <= len(group)
+  # Completeness ranks first, but the reason names it only where it
+  # decides: where the runner-up loses on its readings too, they decide.
+  if incomplete and _merit(group, seeds)[1:] <= _merit(runner_up, seeds)[1:]:
     return (
       f'{text}; ranked above `{ranked[1]}`, which has {len(runner_up)} of '
       f'its {seeds} planned seeds recorded (agents with every '
       'seed recorded rank first)'
     )
+  recorded = (
+    f' ({len(runner_up)} of its {seeds} planned seeds recorded)'
+    if incomplete
+    else ''
+  )
   if other < solved:
-    return f'{text}; next best `{ranked[1]}` {other} of {len(runner_up)}'
+    return (
+      f'{text}; next best `{ranked[1]}` {other} of {len(runner_up)}{recorded}'
+    )
   if other_safe < safe:
     return (
       f'{text}; next best `{ranked[1]}` {other} of {len(runner_up)}, '
-      f'{other_safe} within the limit'
+      f'{other_safe} within the limit{recorded}'
     )
+  if incomplete:
+    recorded = f' (next `{ranked[1]}`{recorded})'
   mean = mean_validation_success(group)
   if mean > mean_validation_success(runner_up):
-    return f'{text}, with the highest mean success on it'
+    return f'{text}, with the highest mean success on it{recorded}'
   if median_steps_to_80(group) < median_steps_to_80(runner_up):
-    return f'{text}, in the fewest env steps to 80% (median over seeds)'
-  return f'{text}, with the least CPU time per run (median over seeds)'
+    return (
+      f'{text}, in the fewest env steps to 80% (median over seeds){recorded}'
+    )
+  return (
+    f'{text}, with the least CPU time per run (median over seeds){recorded}'
+  )
 
 
 def best_policy(
