@@ -923,7 +923,26 @@ def test_the_reason_names_the_readings_where_they_decide_too():
   }
   assert selection.choose(by_agent).why == (
     'solves 2 of 3 seeds on validation; next best `sac_curriculum` 0 of 2 '
-    '(2 of its 3 planned seeds recorded)'
+    '(2 of its 3 planned seeds recorded; the rest could not change the '
+    'order)'
+  )
+
+
+def test_a_tie_break_names_the_runner_up_and_both_readings():
+  by_agent = {
+    'sac_safe': [_row('sac_safe', s, v, v) for s, v in enumerate((0.9, 0.9))],
+    'sac': [_row('sac', s, v, v) for s, v in enumerate((0.9, 0.85))],
+  }
+  by_agent['sac_safe'].append(_row('sac_safe', 2, 0.5, 0.5))
+  by_agent['sac'].append(_row('sac', 2, 0.5, 0.5))
+  assert selection.choose(by_agent).why.endswith(
+    '; ties with `sac` on seeds solved, ahead on mean validation success: '
+    '0.77 against 0.75'
+  )
+  by_agent['sac'][1] = _row('sac', 1, 0.9, 0.9, steps=9000)
+  assert selection.choose(by_agent).why.endswith(
+    'on seeds solved and mean validation success, ahead on env steps to '
+    '80% (median over seeds): 1,000 against 9,000'
   )
 
 
@@ -942,8 +961,8 @@ def test_a_time_to_80_reached_in_the_source_run_says_so():
     | {'started_from': source, 'minutes_to_80': {'wall': 0.0, 'cpu': 0.0}}
     for s in range(3)
   ]
-  assert report._steps_to_80(group) == '270,000 (in its source run)'
-  assert report._cpu_to_80(group) == '15.5 (in its source run)'
+  assert report._steps_to_80(group) == "270,000 (its source run's length)"
+  assert report._cpu_to_80(group) == "15.5 (its source run's length)"
   group[1]['steps_to_80'] = 10_000  # One seed got there on its own.
   assert report._steps_to_80(group) == '270,000'
   fresh = [_row('sac', s, 0.9, 0.9, steps=5000) for s in range(3)]

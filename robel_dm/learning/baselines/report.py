@@ -178,14 +178,15 @@ def _to_80(group: list[dict], unit: str) -> str:
 
 
 def _in_source(group: list[dict], cell: str) -> str:
-  """`cell` (a median to 80%), marked where every solved seed's source
-  run had reached 80% before the seed's own run began: the agent's own
-  aim (fewer violations, other dynamics) costs the rest of the run."""
+  """`cell` (a median to 80%), marked where every solved seed's own run
+  read 80% at its first evaluation: the figure is then the length of the
+  run it started from, and the agent's own aim (fewer violations, other
+  dynamics) costs the rest of the run."""
   solved = [row for row in group if baselines.solved(row)]
   if cell in ('> budget', '-') or not solved:
     return cell
   if all(map(selection.reached_80_in_source, solved)):
-    return f'{cell} (in its source run)'
+    return f"{cell} (its source run's length)"
   return cell
 
 

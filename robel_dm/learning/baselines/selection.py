@@ -258,11 +258,7 @@ def _why_ahead(
       f'its {seeds} planned seeds recorded (agents with every '
       'seed recorded rank first)'
     )
-  recorded = (
-    f' ({len(runner_up)} of its {seeds} planned seeds recorded)'
-    if incomplete
-    else ''
-  )
+  recorded = _seeds_missing(solved, other, len(runner_up)) if incomplete else ''
   if other < solved:
     return (
       f'{text}; next best `{ranked[1]}` {other} of {len(runner_up)}{recorded}'
@@ -272,17 +268,53 @@ def _why_ahead(
       f'{text}; next best `{ranked[1]}` {other} of {len(runner_up)}, '
       f'{other_safe} within the limit{recorded}'
     )
-  if incomplete:
-    recorded = f' (next `{ranked[1]}`{recorded})'
-  mean = mean_validation_success(group)
-  if mean > mean_validation_success(runner_up):
-    return f'{text}, with the highest mean success on it{recorded}'
-  if median_steps_to_80(group) < median_steps_to_80(runner_up):
-    return (
-      f'{text}, in the fewest env steps to 80% (median over seeds){recorded}'
-    )
+  return f'{text}{_tie_break(group, runner_up, ranked[1])}{recorded}'
+
+
+def _seeds_missing(solved: int, other: int, recorded: int) -> str:
+  """How many seeds the runner-up has, and whether its missing seeds,
+  all solved, could put it first."""
+  seeds = len(baselines.PLAN['seeds'])
+  text = f' ({recorded} of its {seeds} planned seeds recorded'
+  if other + seeds - recorded < solved:
+    text += '; the rest could not change the order'
+  return text + ')'
+
+
+def _median_cpu_minutes(group: list[dict]) -> float:
+  return statistics.median(row['cpu_minutes'] for row in group)
+
+
+# `_merit`'s terms after seeds solved and safe: name, reading, format.
+_TIE_BREAKS = (
+  ('mean validation success', mean_validation_success, '{:.2f}'),
+  ('env steps to 80% (median over seeds)', median_steps_to_80, '{:,.0f}'),
+  ('CPU minutes per run (median over seeds)', _median_cpu_minutes, '{:.1f}'),
+)
+
+
+def _tie_break(group: list[dict], runner_up: list[dict], name: str) -> str:
+  """The term after seeds solved (and safe) that puts `group` ahead of
+  the next agent's `runner_up` (the last where all before it tie), with
+  both readings."""
+  tied = ['seeds solved']
+  if any(map(safely_solved, group)):
+    tied.append('seeds within the limit')
+  decisive = next(
+    (tie for tie in _TIE_BREAKS if tie[1](group) != tie[1](runner_up)),
+    _TIE_BREAKS[-1],
+  )
+  term, reading, form = decisive
+  tied += [tie[0] for tie in _TIE_BREAKS[: _TIE_BREAKS.index(decisive)]]
+  ours, theirs = reading(group), reading(runner_up)
+  shown = [
+    '> budget' if value == UNSOLVED else form.format(value)
+    for value in (ours, theirs)
+  ]
+  ties = ', '.join(tied[:-1]) + ' and ' * (len(tied) > 1) + tied[-1]
   return (
-    f'{text}, with the least CPU time per run (median over seeds){recorded}'
+    f'; ties with `{name}` on {ties}, ahead on {term}: {shown[0]} against '
+    f'{shown[1]}'
   )
 
 
