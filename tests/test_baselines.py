@@ -567,7 +567,8 @@ def test_the_report_is_derived_from_the_records(sandbox):
   # Per robot, the recommended agent of each task.
   results = text.split('<!-- results dclaw -->')[1].split('<!-- /')[0]
   assert (
-    '| pose_random | unsolved on validation (closest: `sac`): solves' in results
+    '| pose_random | unsolved on validation (ranked first: `sac`): solves'
+    in results
   )
   manifest = json.loads((baselines.FIGURES / 'figures.json').read_text())
   assert manifest['records_sha256'] == report.records_digest()
@@ -887,11 +888,16 @@ def test_a_mean_over_seeds_counts_its_marked_seeds_in_words():
   assert report._spread([near]) == '0.80~'  # A single run's own mark.
 
 
-def test_a_task_no_seed_solves_names_its_agent_as_the_closest_try():
+def test_a_task_no_seed_solves_names_the_agent_ranked_first_and_best_read():
   by_agent = {'sac': [_row('sac', s, 0.7, 0.9) for s in range(3)]}
   unsolved = selection.choose(by_agent)
   assert report._agent(unsolved, by_agent) == (
-    'unsolved on validation (closest: `sac`)'
+    'unsolved on validation (ranked first: `sac`)'
+  )
+  # One seed of another agent that reads more: named beside it.
+  more = by_agent | {'sac_curriculum': [_row('sac_curriculum', 0, 0.75, 0.6)]}
+  assert report._agent(selection.choose(more), more) == (
+    'unsolved on validation (ranked first: `sac`; reads most: `sac_curriculum`)'
   )
   by_agent['sac_demos'] = [_row('sac_demos', 0, 0.8, 0.5)]  # 1 of 3 seeds.
   assert report._agent(selection.choose(by_agent), by_agent) == (
@@ -899,6 +905,25 @@ def test_a_task_no_seed_solves_names_its_agent_as_the_closest_try():
   )
   solved = {'sac': [_row('sac', 0, 0.8, 0.5)]}
   assert report._agent(selection.choose(solved), solved) == '`sac`'
+
+
+def test_the_reason_names_planned_agents_with_no_record():
+  planned = {
+    run.algo
+    for run in baselines.runs()
+    if (run.domain, run.task) == ('dclaw', 'turn_random_dynamics')
+  }
+  assert {'sac', 'sac_asymmetric'} <= planned  # The real plan.
+  by_agent = {'sac': [_row('sac', s, 0.9, 0.9) for s in range(3)]}
+  text = report._not_recorded(
+    'dclaw', 'turn_random_dynamics', 'valve3', by_agent
+  )
+  assert text.startswith('; planned, none recorded yet: ')
+  assert '`sac_asymmetric`' in text and '`sac`' not in text
+  every = {algo: by_agent['sac'] for algo in planned}
+  assert (
+    report._not_recorded('dclaw', 'turn_random_dynamics', 'valve3', every) == ''
+  )
 
 
 def test_the_reason_says_why_an_agent_with_fewer_seeds_ranks_below():
@@ -923,8 +948,14 @@ def test_the_reason_names_the_readings_where_they_decide_too():
   }
   assert selection.choose(by_agent).why == (
     'solves 2 of 3 seeds on validation; next best `sac_curriculum` 0 of 2 '
-    '(2 of its 3 planned seeds recorded; the rest could not change the '
-    'order)'
+    '(2 of its 3 planned seeds recorded; its missing seeds could not put '
+    'it first)'
+  )
+  # A third agent whose two missing seeds could still put it first.
+  by_agent['sac_warm'] = [_row('sac_warm', 0, 0.72, 0.72)]
+  assert selection.choose(by_agent).why.endswith(
+    '; `sac_warm` has 1 of 3 seeds recorded, and its missing seeds could '
+    'put it first'
   )
 
 

@@ -222,7 +222,8 @@ def results_table(rows: list[dict], domain: str) -> str:
       dom, task, valve, by_agent, choice.shipped
     )
     lines.append(
-      f'| {name} | {_agent(choice, by_agent)}: {choice.why} | {_spread(group)} '
+      f'| {name} | {_agent(choice, by_agent)}: {choice.why}'
+      f'{_not_recorded(dom, task, valve, by_agent)} | {_spread(group)} '
       f'| {solved} of {len(group)} '
       f'| {_steps_to_80(group)} '
       f'| {_cpu_to_80(group)} '
@@ -246,7 +247,35 @@ def _agent(choice: selection.Choice, by_agent: dict[str, list[dict]]) -> str:
     for row in rows
   ):
     return f'`{choice.algo}` (no seed solved on validation)'
-  return f'unsolved on validation (closest: `{choice.algo}`)'
+  mean = {
+    algo: selection.mean_validation_success(rows)
+    for algo, rows in by_agent.items()
+    if selection.for_robots(algo)
+  }
+  most = max(mean, key=mean.get)
+  if mean[most] > mean[choice.algo]:
+    return (
+      f'unsolved on validation (ranked first: `{choice.algo}`; reads most: '
+      f'`{most}`)'
+    )
+  return f'unsolved on validation (ranked first: `{choice.algo}`)'
+
+
+def _not_recorded(domain: str, task: str, valve: str, by_agent: dict) -> str:
+  """The agents for robots the plan runs on the task that have no record
+  yet (they could change the choice), as a clause of the reason."""
+  missing = sorted(
+    {
+      run.algo
+      for run in baselines.runs()
+      if (run.domain, run.task, run.valve4) == (domain, task, valve == 'valve4')
+      and run.algo not in by_agent
+      and selection.for_robots(run.algo)
+    }
+  )
+  if not missing:
+    return ''
+  return '; planned, none recorded yet: ' + ', '.join(f'`{a}`' for a in missing)
 
 
 def _shipped_cells(

@@ -205,15 +205,34 @@ def _why(algo: str, by_agent: dict[str, list[dict]], ranked: list[str]) -> str:
   text = _why_ahead(algo, by_agent, ranked)
   mean = mean_validation_success(by_agent[algo])
   seeds = len(baselines.PLAN['seeds'])
+  ours = by_agent[algo]
   for other in ranked[1:]:
     group = by_agent[other]
+    if len(group) >= seeds:
+      continue
     other_mean = mean_validation_success(group)
-    if len(group) < seeds and other_mean > mean:
+    if other_mean > mean:
       text += (
         f'; `{other}` reads more ({other_mean:.2f} mean on validation) on '
         f'{len(group)} of {seeds} seeds recorded'
       )
+    elif other != ranked[1] and _could_rank_above(group, ours):
+      text += (
+        f'; `{other}` has {len(group)} of {seeds} seeds recorded, and its '
+        'missing seeds could put it first'
+      )
   return text
+
+
+def _could_rank_above(incomplete: list[dict], group: list[dict]) -> bool:
+  """Whether an agent with seeds missing, each of them solved within the
+  limit, would tie or beat `group` on seeds solved and within the limit."""
+  missing = len(baselines.PLAN['seeds']) - len(incomplete)
+  solved, other = (
+    sum(map(solved_on_validation, g)) for g in (group, incomplete)
+  )
+  safe, other_safe = (sum(map(safely_solved, g)) for g in (group, incomplete))
+  return (other + missing, other_safe + missing) >= (solved, safe)
 
 
 def _why_ahead(
@@ -277,7 +296,7 @@ def _seeds_missing(solved: int, other: int, recorded: int) -> str:
   seeds = len(baselines.PLAN['seeds'])
   text = f' ({recorded} of its {seeds} planned seeds recorded'
   if other + seeds - recorded < solved:
-    text += '; the rest could not change the order'
+    text += '; its missing seeds could not put it first'
   return text + ')'
 
 
