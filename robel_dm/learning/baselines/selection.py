@@ -72,8 +72,8 @@ def training_steps_to_80(row: dict) -> int | None:
 
 
 def reached_80_in_source(row: dict) -> bool:
-  """Whether the run's source run had reached 80% before it started (its
-  first training evaluation reads 80%): its time to 80% is the source's,
+  """Whether a run that starts from another read 80% at its first
+  training evaluation: its time to 80% is then the whole source run's,
   and what the run adds costs the rest of it."""
   return bool(row.get('started_from')) and row['steps_to_80'] == 0
 
@@ -145,7 +145,7 @@ def _merit(group: list[dict], seeds: int) -> tuple:
   safe = sum(safely_solved(row) for row in group)
   solved = sum(map(solved_on_validation, group))
   mean = mean_validation_success(group)
-  cpu = statistics.median(row['cpu_minutes'] for row in group)
+  cpu = _median_cpu_minutes(group)
   return (
     len(group) >= seeds,
     solved,
