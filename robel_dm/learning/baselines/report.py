@@ -354,6 +354,11 @@ def progress(rows: list[dict]) -> str:
   }  # fmt: skip
   outside = len(recorded - {r.name for r in table})
   old = sum(row.get('protocol', 1) < baselines.PROTOCOL for row in rows)
+  protocols = (
+    f'{old} of protocol 1, marked †'
+    if old
+    else f'all of protocol {baselines.PROTOCOL}'
+  )
   cpu = sum(row['cpu_minutes'] for row in rows)
   return (
     f'The plan has {len(table)} runs: {len(default)} with the default agent '
@@ -362,8 +367,8 @@ def progress(rows: list[dict]) -> str:
     f'{baselines.PROTOCOL}: {len(settled)} of them, '
     f'{len(settled & {r.name for r in default})} with the default agent. '
     f'`baselines.json` holds {len(rows)} records ({outside} of them runs '
-    f'outside the plan, kept for comparison; {old} of protocol 1, marked '
-    f'†), {cpu:,.0f} CPU minutes of training in all.'
+    f'outside the plan, kept for comparison; {protocols}), {cpu:,.0f} CPU '
+    'minutes of training in all.'
   )
 
 
