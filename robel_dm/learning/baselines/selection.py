@@ -203,9 +203,9 @@ def _why(algo: str, by_agent: dict[str, list[dict]], ranked: list[str]) -> str:
   of `_merit`'s terms put it ahead of the next agent, and any agent with
   fewer seeds recorded that reads more."""
   text = _why_ahead(algo, by_agent, ranked)
-  mean = mean_validation_success(by_agent[algo])
-  seeds = len(baselines.PLAN['seeds'])
   ours = by_agent[algo]
+  mean = mean_validation_success(ours)
+  seeds = len(baselines.PLAN['seeds'])
   for other in ranked[1:]:
     group = by_agent[other]
     if len(group) >= seeds:
@@ -277,7 +277,7 @@ def _why_ahead(
       f'its {seeds} planned seeds recorded (agents with every '
       'seed recorded rank first)'
     )
-  recorded = _seeds_missing(solved, other, len(runner_up)) if incomplete else ''
+  recorded = _seeds_missing(runner_up, group) if incomplete else ''
   if other < solved:
     return (
       f'{text}; next best `{ranked[1]}` {other} of {len(runner_up)}{recorded}'
@@ -290,18 +290,20 @@ def _why_ahead(
   return f'{text}{_tie_break(group, runner_up, ranked[1])}{recorded}'
 
 
-def _seeds_missing(solved: int, other: int, recorded: int) -> str:
-  """How many seeds the runner-up has, and whether its missing seeds,
-  all solved, could put it first."""
+def _seeds_missing(runner_up: list[dict], group: list[dict]) -> str:
+  """How many seeds the runner-up has, and where its missing seeds could
+  not put it above `group` (`_could_rank_above`), that they could not."""
   seeds = len(baselines.PLAN['seeds'])
-  text = f' ({recorded} of its {seeds} planned seeds recorded'
-  if other + seeds - recorded < solved:
+  text = f' ({len(runner_up)} of its {seeds} planned seeds recorded'
+  if not _could_rank_above(runner_up, group):
     text += '; its missing seeds could not put it first'
   return text + ')'
 
 
 def _median_cpu_minutes(group: list[dict]) -> float:
-  return statistics.median(row['cpu_minutes'] for row in group)
+  """CPU minutes per run, median over seeds, as the tables count them:
+  with the run each started from (`run_minutes`)."""
+  return statistics.median(run_minutes(row, 'cpu') for row in group)
 
 
 # `_merit`'s terms after seeds solved and safe: name, reading, format.
