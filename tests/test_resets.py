@@ -112,6 +112,13 @@ def test_reset_choices_are_checked():
     )
 
 
+def test_a_robot_without_a_scripted_reset_is_named():
+  with pytest.raises(ValueError, match="robot 'dhand' has no scripted reset"):
+    resets.make('scripted', None, 'dhand')
+  with pytest.raises(ValueError, match='needs the torso pose'):
+    resets.make('scripted', None, 'dkitty')
+
+
 def _guide_ticks(angle):
   guide = config_lib.default('dclaw').auxiliary_motor('guide')
   return round(guide.to_motor(angle) / table.RADIANS_PER_TICK)

@@ -276,47 +276,54 @@ class ManualReset:
     clock.sleep_until(clock.now() + _MANUAL_SETTLE)
 
 
-def make(name, robot_config, domain: str, torso_source=None, operator=None):
-  """The reset procedure `name` for a robot.
+def make(
+  procedure, robot_config, domain: str, torso_source=None, operator=None
+):
+  """The reset procedure of that name for the robot `domain`.
 
   Args:
-    name: 'scripted', 'move' or 'manual'; or a procedure (a callable with the
-      signature of `MoveReset.__call__`), returned as is.
+    procedure: 'scripted', 'move' or 'manual'; or a procedure (a callable
+      with the signature of `MoveReset.__call__`), returned as is.
     robot_config: the robot's configuration (for motor groups).
-    domain: 'dclaw' or 'dkitty'.
+    domain: the robot: 'dclaw' or 'dkitty' (the robots with a scripted
+      reset).
     torso_source: the D'Kitty's torso pose (for its scripted reset).
     operator: for 'manual' on a simulated robot, the simulated person
       (see `ManualReset`).
 
   Raises:
-    ValueError: for an unknown name or one the robot does not support.
+    ValueError: for an unknown procedure or one the robot does not support.
   """
-  if callable(name):
-    return name
-  if name == 'move':
+  if callable(procedure):
+    return procedure
+  if procedure == 'move':
     return MoveReset()
-  if name == 'manual':
+  if procedure == 'manual':
     return ManualReset(torso_source=torso_source, operator=operator)
-  if name == 'scripted':
-    if domain == 'dclaw':
-      return DClawScriptedReset(
-        robot_config.group('top'),
-        robot_config.group('middle'),
-        robot_config.group('bottom'),
-      )
-    if domain == 'dkitty' and torso_source is not None:
-      return DKittyScriptedReset(
-        torso_source,
-        robot_config.group('left'),
-        robot_config.group('right'),
-        robot_config.group('front'),
-        robot_config.group('back'),
-      )
+  if procedure != 'scripted':
     raise ValueError(
-      f'the scripted {domain} reset needs the torso pose (a tracker)'
+      f"unknown reset {procedure!r}; expected 'scripted', 'move' or 'manual'"
     )
-  raise ValueError(
-    f"unknown reset {name!r}; expected 'scripted', 'move' or 'manual'"
+  if domain == 'dclaw':
+    return DClawScriptedReset(
+      robot_config.group('top'),
+      robot_config.group('middle'),
+      robot_config.group('bottom'),
+    )
+  if domain != 'dkitty':
+    raise ValueError(
+      f"robot {domain!r} has no scripted reset; use 'move' or 'manual'"
+    )
+  if torso_source is None:
+    raise ValueError(
+      'the scripted dkitty reset needs the torso pose (a tracker)'
+    )
+  return DKittyScriptedReset(
+    torso_source,
+    robot_config.group('left'),
+    robot_config.group('right'),
+    robot_config.group('front'),
+    robot_config.group('back'),
   )
 
 
