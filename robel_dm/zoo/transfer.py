@@ -23,7 +23,15 @@ from typing import Any
 
 import numpy as np
 
-from robel_dm import assets, evaluation, policies, provenance, suite, zoo
+from robel_dm import (
+  assets,
+  evaluation,
+  policies,
+  provenance,
+  robots,
+  suite,
+  zoo,
+)
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 RESULTS = ROOT / 'docs' / 'zoo' / 'transfer.json'
@@ -216,7 +224,7 @@ def report(records: list[dict] | None = None, doc: pathlib.Path = DOC) -> None:
   their markers in docs/zoo.md."""
   records = load_records() if records is None else records
   text = _replace_between(doc.read_text(), 'robots', robots_table())
-  for domain in ('dclaw', 'dkitty'):
+  for domain in robots.ROBOTS:
     text = _replace_between(
       text, f'transfer {domain}', domain_table(records, domain)
     )

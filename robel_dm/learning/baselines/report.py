@@ -12,7 +12,7 @@ import statistics
 
 import numpy as np
 
-from robel_dm import suite
+from robel_dm import robots, suite
 from robel_dm.learning import baselines, curves
 from robel_dm.learning.baselines import selection
 
@@ -586,7 +586,7 @@ def write() -> None:
   rows = json.loads(baselines.RESULTS.read_text())
   print('shipped:', ', '.join(ship(rows)) or 'none')
   text = baselines.DOC.read_text() if baselines.DOC.is_file() else ''
-  for domain in ('dclaw', 'dkitty'):
+  for domain in robots.ROBOTS:
     text = _replace(
       text,
       f'<!-- results {domain} -->',
