@@ -116,23 +116,26 @@ def test_firmware_refusing_block_reads_is_read_item_by_item(monkeypatch):
 @pytest.mark.slow
 def test_command_line_exits_0_on_a_healthy_bus():
   with _serve() as (_, device):
-    result = _main(f'--device={device}', '--robot=dclaw')
+    result = _main(f'--device_path={device}', '--robot=dclaw')
   assert result.returncode == 0, result.stdout + result.stderr
   assert 'OK: 11 motor(s) found' in result.stdout
 
 
 @pytest.mark.slow
 def test_command_line_exits_2_for_a_missing_device():
-  result = _main('--device=/dev/robel-dm-no-such-port', '--robot=dclaw')
+  result = _main('--device_path=/dev/robel-dm-no-such-port', '--robot=dclaw')
   assert result.returncode == 2
   assert 'cannot open /dev/robel-dm-no-such-port' in result.stderr
 
 
 @pytest.mark.slow
 def test_command_line_exits_2_for_usage_errors():
-  result = _main('--device=/dev/null', '--robot=dclaw', '--robot_config=x')
+  result = _main('--device_path=/dev/null', '--robot=dclaw', '--robot_config=x')
   assert result.returncode == 2
   assert 'not both' in result.stderr
+  result = _main('--robot=dclaw')
+  assert result.returncode == 2
+  assert '--device_path is required' in result.stderr
 
 
 def test_missing_motor_is_reported_by_id():
@@ -168,6 +171,7 @@ def test_wrong_baud_without_expectations_fails_naming_what_was_tried():
   # Nothing expected: every ID is pinged, and finding none is no success.
   with _serve() as (_, device):
     code, output = _run(device, robot_config=None, baud_rate=57_600)
+    # --device: the flag's first name, still taken.
     result = _main(f'--device={device}', '--baud=57600')
   assert code == 1, output
   assert 'PROBLEMS: 0 motor(s) found' in output

@@ -1,6 +1,6 @@
 """Diagnostics of a Dynamixel bus: which motors answer, how they are set up.
 
-  robel-scan --device=/dev/ttyUSB0 --robot=dclaw
+  robel-scan --device_path=/dev/ttyUSB0 --robot=dclaw
 
 finds the motors (pings; with `--all_ids` a Broadcast Ping covers every ID),
 lists what each reports (model, firmware, position, temperature, voltage,
@@ -38,10 +38,16 @@ from robel_dm.hardware.scan.cli import (
 
 
 def _define_flags():
+  device_path = flags.DEFINE_string(
+    'device_path',
+    None,
+    'Serial device of the bus, e.g. /dev/ttyUSB0 (the flag the other '
+    'commands give a robot by).',
+  )
+  # The flag's first name, kept so that existing scripts run.
+  flags.DEFINE_alias('device', 'device_path')
   return {
-    'device': flags.DEFINE_string(
-      'device', None, 'Serial device of the bus, e.g. /dev/ttyUSB0.'
-    ),
+    'device_path': device_path,
     'robot': flags.DEFINE_enum(
       'robot',
       None,
@@ -92,8 +98,10 @@ def main(argv: Sequence[str] | None = None) -> None:
     try:
       if len(args) > 1:
         raise UsageError(f'unexpected arguments: {args[1:]}')
-      if not values['device']:
-        raise UsageError('--device is required, e.g. --device=/dev/ttyUSB0')
+      if not values['device_path']:
+        raise UsageError(
+          '--device_path is required, e.g. --device_path=/dev/ttyUSB0'
+        )
       if values['yes'] and not values['apply']:
         raise UsageError('--yes only goes with --apply')
       robot_config = load_config(values['robot'], values['robot_config'])
@@ -115,7 +123,7 @@ def main(argv: Sequence[str] | None = None) -> None:
       apply=values['apply'],
       yes=values['yes'],
     )
-    return run(values['device'], options)
+    return run(values['device_path'], options)
 
   app.run(run_flags, argv=argv, flags_parser=parse)
 

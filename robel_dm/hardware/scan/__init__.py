@@ -1,6 +1,6 @@
 """Diagnostics of a Dynamixel bus: which motors answer, how they are set up.
 
-`robel-scan --device=/dev/ttyUSB0 --robot=dclaw`
+`robel-scan --device_path=/dev/ttyUSB0 --robot=dclaw`
 checks a bus (`cli` describes the command). The functions return data:
 `probe.scan` reads the motors into `MotorReport`s, `checks.problems` says
 what would trouble ROBEL, `fixes.recommended_writes` and
