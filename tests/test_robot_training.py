@@ -7,6 +7,7 @@ benchmarks/robot_training.py.
 
 import dataclasses
 import json
+import multiprocessing
 import os
 import pathlib
 import signal
@@ -233,6 +234,25 @@ def test_a_robot_that_cannot_be_reset_stops_the_run_saved(
   assert not any(s.torque_enabled for s in servos if s.motor_id != 21)
   assert (tmp_path / train_lib.CHECKPOINT).is_file()
   assert _recorded_steps(tmp_path / robot_training.RECORDING) >= 99
+
+
+@pytest.mark.slow
+def test_a_learner_that_dies_stops_the_run_with_the_robot_released(
+  tmp_path, monkeypatch
+):
+  def kill_the_learner(env, n):
+    if n == 560:  # Past the learning start, in the seventh episode.
+      for child in multiprocessing.active_children():
+        os.kill(child.pid, signal.SIGKILL)
+
+  envs = _inject(monkeypatch, kill_the_learner)
+  with pytest.raises(RuntimeError, match='the learner process ended'):
+    robot_training.train_on_robot(
+      CONFIG, VIRTUAL, tmp_path, log=lambda line: None
+    )
+  assert not any(s.torque_enabled for s in envs[0].virtual_bus.servos)
+  # The steps before the learner died are recorded.
+  assert _recorded_steps(tmp_path / robot_training.RECORDING) >= 559
 
 
 @pytest.mark.slow
