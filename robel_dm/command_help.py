@@ -1,4 +1,4 @@
-"""The `--help` of a command line (`robel_dm.commands`): `describe`, and
+"""The `--help` of a command line (`robel_dm.commands`): `set_help`, and
 `run_absl`, which starts an absl command with it.
 
 A foundation that any command uses; it imports only absl.
@@ -10,7 +10,7 @@ import sys
 from absl import app, flags
 
 
-def describe(doc: str, flags_of: str) -> None:
+def set_help(doc: str, flags_of: str) -> None:
   """Makes the command's `--help` show `doc` and the flags `flags_of` defined.
 
   absl's `--help` shows the main module's docstring and the flags defined
@@ -35,7 +35,7 @@ def run_absl(
   flags_of: str,
 ) -> None:
   """Runs an absl command: defines its flags, makes its `--help` show `doc`
-  and those flags (see `describe`), then runs `main`."""
+  and those flags (see `set_help`), then runs `main`."""
   define_flags()
-  describe(doc, flags_of)
+  set_help(doc, flags_of)
   app.run(main)

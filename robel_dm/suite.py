@@ -23,7 +23,10 @@ from robel_dm.environment import Environment
 # thread can install them, and a robot may be driven from another thread.
 from robel_dm.hardware import shutdown  # noqa: F401, I001
 from robel_dm.hardware.options import RobotOptions
-from robel_dm.tasks import (  # noqa: F401  (imported to register the tasks)
+
+# Importing a task family's module registers its tasks (hence F401);
+# `base` and `excitation` are used below.
+from robel_dm.tasks import (  # noqa: F401
   base,
   dclaw_pose,
   dclaw_screw,

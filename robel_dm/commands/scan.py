@@ -84,7 +84,7 @@ def main(argv: Sequence[str] | None = None) -> None:
   """The command (`robel-scan`); exits with its status."""
 
   flag_values = _define_flags()
-  command_help.describe(__doc__, __name__)
+  command_help.set_help(__doc__, __name__)
 
   def parse(args: Sequence[str]) -> list[str]:
     try:

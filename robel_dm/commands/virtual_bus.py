@@ -160,7 +160,7 @@ def main(argv: Sequence[str] | None = None) -> None:
   from robel_dm import command_help  # noqa: PLC0415 (imports absl)
 
   flag_values = _define_flags()
-  command_help.describe(__doc__, __name__)
+  command_help.set_help(__doc__, __name__)
 
   def run(args: Sequence[str]) -> int:
     if len(args) > 1:

@@ -126,7 +126,7 @@ def _names(column: str, size: int, joints: tuple, motors: tuple):
   return [key] if size == 1 and key != column else None
 
 
-def describe_columns(env, row: dict[str, Any], session: dict[str, Any]):
+def column_description(env, row: dict[str, Any], session: dict[str, Any]):
   """The description of the columns of `row` (see
   `reader.describe_columns`): computed once per episode, from its first
   row."""
@@ -317,7 +317,7 @@ class Recorder(dm_env.Environment):
       self._directory,
       index,
       self._episode_metadata(index),
-      describe_columns(self._env, row, self._metadata),
+      column_description(self._env, row, self._metadata),
     )
     self._writer.add(row)
     self._frame += 1
