@@ -293,7 +293,7 @@ def test_a_best_policy_is_checked_once(sandbox, monkeypatch):
 def test_demonstration_runs_use_the_reference_controller(sandbox):
   pytest.importorskip('pyarrow', reason='needs robel_dm[data]')  # Demos.
   run = baselines.Run('dclaw', 'pose_random', 'bc', 0)
-  record = baselines.train_run(run, log=lambda line: None)
+  record = scheduling.make_run(run, log=lambda line: None)
   assert record['algo'] == 'bc' and record['env_steps'] == 0
   demos = sandbox / 'runs' / 'demos' / 'dclaw_pose_random'
   assert len((demos / 'meta' / 'episodes.jsonl').read_text().splitlines()) == 2
@@ -306,8 +306,10 @@ def test_runs_without_a_demonstrator_wait(sandbox, monkeypatch):
   )
   run = baselines.Run('dclaw', 'turn_fixed', 'bc', 0)
   lines = []
-  assert baselines.train_run(run, log=lines.append) is None
+  assert scheduling.make_run(run, log=lines.append) is None
   assert 'waits for a solved policy' in lines[0]
+  with pytest.raises(ValueError, match='learns from demonstrations'):
+    baselines.train_run(run, log=lines.append)
 
 
 @pytest.mark.slow
@@ -326,7 +328,7 @@ def test_a_shipped_policy_demonstrates_in_a_checkout_without_runs(
   )
   run = baselines.Run('dclaw', 'turn_fixed', 'bc', 0)
   lines = []
-  assert baselines.train_run(run, log=lines.append) is not None
+  assert scheduling.make_run(run, log=lines.append) is not None
   assert 'demonstrations of dclaw/turn_fixed by' in lines[0]
 
 

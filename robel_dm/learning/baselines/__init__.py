@@ -404,28 +404,31 @@ def shipped_metadata(domain: str, task: str) -> dict | None:
     return json.loads(str(arrays['metadata']))
 
 
-def train_run(run: Run, log=print) -> dict | None:
+def train_run(run: Run, log=print, demos: tuple[str, ...] = ()) -> dict | None:
   """Trains `run` (resuming) until its validation says stop, keeps its best
   policy, reads its validation and then, once, its test episodes; returns
-  its record. None if its demonstrations cannot be made yet."""
+  its record. None if the run it starts from is not finished yet.
+
+  Args:
+    run: the run.
+    log: where progress lines go.
+    demos: the recordings of its demonstrations, for an agent that learns
+      from them (`scheduling.make_run` makes them).
+
+  Raises:
+    ValueError: for an agent that learns from demonstrations, given none.
+  """
   from robel_dm import policies  # noqa: PLC0415
   from robel_dm.learning import agents, training  # noqa: PLC0415
 
   if finished(run):
     return record(run)
+  if agents.get(run.algo).needs_demos and not demos:
+    raise ValueError(f'{run.name}: its agent learns from demonstrations')
   source = run.source()
   if source is not None and not finished(source):
     log(f'{run.name}: waits for {source.name} to start from')
     return None
-  demos = ()
-  if agents.get(run.algo).needs_demos:
-    from robel_dm.learning.baselines import demonstrations  # noqa: PLC0415
-
-    source = demonstrations.record(run, log)
-    if source is None:
-      log(f'{run.name}: waits for a solved policy to demonstrate the task')
-      return None
-    demos = (source,)
   config = run.config(demos)
   resume = (run.directory / training.CONFIG).is_file()
   run.directory.mkdir(parents=True, exist_ok=True)

@@ -4,9 +4,10 @@ robin (one per core, or per machine), or one Ray task per run."""
 import pathlib
 import time
 
-from robel_dm.learning import baselines
+from robel_dm.learning import agents, baselines
 from robel_dm.learning.baselines import (
   Run,
+  demonstrations,
   done,
   finished,
   forget,
@@ -16,6 +17,20 @@ from robel_dm.learning.baselines import (
   select,
   train_run,
 )
+
+
+def make_run(run: Run, log=print) -> dict | None:
+  """`train_run` with the run's demonstrations, made first if its agent
+  learns from them; None while they, or the run it starts from, cannot be
+  made yet."""
+  demos = ()
+  if agents.get(run.algo).needs_demos and not finished(run):
+    source = demonstrations.record(run, log)
+    if source is None:
+      log(f'{run.name}: waits for a solved policy to demonstrate the task')
+      return None
+    demos = (source,)
+  return train_run(run, log=log, demos=demos)
 
 
 def _say_recorded(run: Run, log) -> None:
@@ -54,22 +69,22 @@ def train_queue(
       if pattern:
         _say_recorded(run, log)
       continue
-    result = train_run(run, log=log)
+    result = make_run(run, log=log)
     if result is None:
       waiting.append(run)
     else:
       merge_results([result])
   for run in waiting:
-    result = train_run(run, log=log)
+    result = make_run(run, log=log)
     if result is not None:
       merge_results([result])
 
 
 def _remote_train_run(run: Run, plan: dict, runs_dir: pathlib.Path):
-  """`train_run` in a Ray worker, with the driver's plan and run folder."""
+  """`make_run` in a Ray worker, with the driver's plan and run folder."""
   # A worker process of its own: its module settings are the driver's.
   baselines.PLAN, baselines.RUNS_DIR = plan, runs_dir
-  return train_run(run, log=lambda line: None)
+  return make_run(run, log=lambda line: None)
 
 
 def train_ray(address: str, pattern: str | None) -> list[dict]:
