@@ -279,7 +279,7 @@ class ManualReset:
 def make(
   procedure, robot_config, domain: str, torso_source=None, operator=None
 ):
-  """The reset procedure of that name for the robot `domain`.
+  """The reset procedure `procedure` names, for the robot `domain`.
 
   Args:
     procedure: 'scripted', 'move' or 'manual'; or a procedure (a callable
