@@ -920,7 +920,7 @@ def test_the_reason_names_planned_agents_with_no_record():
   text = report._not_recorded(
     'dclaw', 'turn_random_dynamics', 'valve3', by_agent
   )
-  assert text.startswith('; planned, none recorded yet: ')
+  assert text.startswith('; planned, without a record: ')
   assert '`sac_asymmetric`' in text and '`sac`' not in text
   every = {algo: by_agent['sac'] for algo in planned}
   assert (

@@ -275,7 +275,7 @@ def _not_recorded(domain: str, task: str, valve: str, by_agent: dict) -> str:
   )
   if not missing:
     return ''
-  return '; planned, none recorded yet: ' + ', '.join(f'`{a}`' for a in missing)
+  return '; planned, without a record: ' + ', '.join(f'`{a}`' for a in missing)
 
 
 def _shipped_cells(
