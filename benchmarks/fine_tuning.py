@@ -25,7 +25,8 @@ Reported per run: whether it reached 80%, robot steps and robot minutes
 included) to the solving evaluation, the success of the first evaluation
 (robot step 0: for the from-simulation run, the simulation policy on the
 robot before any robot learning), ROBEL's score of the first and last
-evaluations, the safety violations per episode of
+evaluations (averaged over the episode's steps, and at its last step),
+the safety violations per episode of
 the solving evaluation (of the last one if unsolved), and CPU seconds:
 the actor process's to the solving evaluation, and the whole run's (this
 process and the learner process, start-up included). For the source run:
@@ -170,6 +171,10 @@ def on_robot(
     # task the run started and got, solved or not.
     'first_score': round(history[0]['mean_score'], 3),
     'last_score': round(history[-1]['mean_score'], 3),
+    # The score at the evaluation episode's last step: where the claw
+    # ended, however slowly it got there.
+    'first_final_score': round(history[0]['mean_final_score'], 3),
+    'last_final_score': round(history[-1]['mean_final_score'], 3),
     'violations': round(sum(last['safety'].values()), 2),
     'violations_by_kind': {k: round(v, 2) for k, v in last['safety'].items()},
     'cpu_seconds': round(last['cpu_time'], 1),

@@ -270,6 +270,42 @@ def test_an_episode_ends_at_the_safety_threshold(tmp_path):
   assert progress[-1]['early_ends'] == len(early)
 
 
+def test_a_robot_evaluation_scores_its_episodes_as_simulation_does(
+  tmp_path, monkeypatch
+):
+  scores = []  # ROBEL's score after each robot step, in order.
+  load = robot_training.RobotRunOptions.load
+
+  def load_and_watch(options, config, seed):
+    env = load(options, config, seed)
+    step = env.step
+
+    def watched(action):
+      timestep = step(action)
+      scores.append(float(timestep.observation['score']))
+      return timestep
+
+    env.step = watched
+    return env
+
+  monkeypatch.setattr(robot_training.RobotRunOptions, 'load', load_and_watch)
+  config = CONFIG.__class__(**{**CONFIG.__dict__, 'steps': 80})
+  history = robot_training.train_on_robot(config, VIRTUAL, tmp_path, log=_quiet)
+  # Evaluation episodes count as robot steps: the run is two of them.
+  assert len(scores) == 160 and len(history) == 2
+  for row, episode in zip(history, (scores[:80], scores[80:]), strict=True):
+    # The score of an episode is its mean over the steps (as in
+    # `evaluation.episodes`); its last step's is kept beside it.
+    assert len(set(episode)) > 1
+    assert row['mean_score'] == pytest.approx(np.mean(episode), abs=1e-12)
+    assert row['mean_final_score'] == episode[-1]
+  progress = _rows(tmp_path / robot_training.PROGRESS_LOG)
+  assert [r['score'] for r in progress] == pytest.approx(
+    [np.mean(scores[:80]), np.mean(scores[80:])], abs=1e-12
+  )
+  assert [r['final_score'] for r in progress] == [scores[79], scores[159]]
+
+
 _KILLABLE = """
 import sys
 from robel_dm import suite

@@ -86,11 +86,18 @@ class _Episode:
   steps: int = 0
   reward: float = 0.0
   success: bool = False
-  score: float = 0.0
+  score_total: float = 0.0
+  final_score: float = 0.0
   violations: np.ndarray = dataclasses.field(
     default_factory=lambda: np.zeros(3)
   )
   ended: str = 'time limit'
+
+  @property
+  def score(self) -> float:
+    """ROBEL's score averaged over the episode's steps, as in simulation
+    (`evaluation.episodes`); 0 for an episode without steps."""
+    return self.score_total / self.steps if self.steps else 0.0
 
 
 class _RobotRun:
@@ -238,7 +245,8 @@ class _RobotRun:
       result.reward += float(timestep.reward)
       result.violations += safety
       result.success = bool(timestep.observation['success'])
-      result.score = float(timestep.observation['score'])
+      result.final_score = float(timestep.observation['score'])
+      result.score_total += result.final_score
       limit = self.options.max_violations
       if limit is not None and result.violations.sum() >= limit:
         result.ended = f'safety: {int(result.violations.sum())} violations'
@@ -263,6 +271,7 @@ class _RobotRun:
       'return': result.reward,
       'success': result.success,
       'score': result.score,
+      'final_score': result.final_score,
       'violations': dict(
         zip(SAFETY_FIELDS, result.violations.tolist(), strict=True)
       ),
@@ -333,6 +342,7 @@ class _RobotRun:
     return {
       'success_rate': sum(e.success for e in episodes) / n,
       'mean_score': sum(e.score for e in episodes) / n,
+      'mean_final_score': sum(e.final_score for e in episodes) / n,
       'mean_return': sum(e.reward for e in episodes) / n,
       'safety': dict(zip(SAFETY_FIELDS, violations.tolist(), strict=True)),
       'episodes': n,
