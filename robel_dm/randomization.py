@@ -199,6 +199,12 @@ class DynamicsRandomizer:
     }
 
   @property
+  def quantities(self) -> tuple[tuple[str, int], ...]:
+    """(`DynamicsRanges` field, number of draws) of what `draws` holds,
+    in its order."""
+    return tuple(self._quantities)
+
+  @property
   def draw_count(self) -> int:
     """The size of `draws`."""
     return sum(size for _, size in self._quantities)

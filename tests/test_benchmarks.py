@@ -109,3 +109,38 @@ def test_randomdynamics_parts_takes_the_task_apart(
   gain = table['gain']['dynamics']
   assert gain.actuator_kp == task.dynamics.actuator_kp
   assert gain.damping is None and gain.geom_friction is None
+
+
+def test_randomdynamics_draws_splits_the_episodes_by_what_was_drawn(
+  benchmarks,
+):
+  from robel_dm import suite  # noqa: PLC0415
+
+  draws = benchmarks('randomdynamics_draws')
+  rows = [{'draws': {'q': value}} for value in (5.0, 1.0, 3.0, 2.0, 4.0, 6.0)]
+  assert draws.thirds(rows, 'q') == [
+    'high', 'low', 'middle', 'low', 'middle', 'high'
+  ]  # fmt: skip
+  # Episodes 1 and 3 fail under both policies; failing independently,
+  # half of the four (1/2 x 1 failure rates) would.
+  results = {
+    name: [{'success': s} for s in successes]
+    for name, successes in (('a', [1, 0, 1, 0]), ('b', [0, 0, 0, 0]))
+  }
+  assert draws._unsolved(results) == (
+    'solved by no policy: 2 of 4 episodes '
+    '(if the policies failed independently: 2.0)'
+  )
+  env = suite.load('dkitty', 'orient_random_dynamics', seed=4)
+  timestep = env.reset()
+  drawn = draws.drawn(env)
+  physics = env.task.dynamics_draws
+  assert drawn['damping'] == physics['damping'][0]
+  assert [drawn[f'geom_friction.{p}'] for p in ('slide', 'spin', 'roll')] == (
+    physics['geom_friction'].tolist()
+  )
+  # The angle to turn: the reset's score.
+  assert drawn['score_at_reset'] == float(timestep.observation['score'])
+  assert -1.0 <= drawn['terrain.mean'] <= 1.0
+  assert 0.0 < drawn['terrain.spread'] <= 2.0
+  env.close()

@@ -63,6 +63,29 @@ def test_dclaw_draws_are_the_model_values_scaled_over_the_ranges():
   env.close()
 
 
+def test_dynamics_draws_name_the_privileged_observations_parts():
+  env = suite.load(
+    'dkitty', 'orient_random_dynamics', task_kwargs={'privileged': True}
+  )
+  for _ in range(2):  # A new draw every episode.
+    privileged = env.reset().observation['privileged']
+    draws = env.task.dynamics_draws
+    # D'Kitty's locomotion ranges: one damping, one friction loss and one
+    # servo gain for all joints, contact friction (3), total mass.
+    assert list(draws) == [
+      'damping', 'friction_loss', 'actuator_kp', 'geom_friction', 'total_mass'
+    ]  # fmt: skip
+    assert [d.size for d in draws.values()] == [1, 1, 1, 3, 1]
+    np.testing.assert_array_equal(
+      np.concatenate(list(draws.values())), privileged[:7]
+    )
+    # Servo gain U(2.8, 3.2), scaled to [-1, 1].
+    gain = env.physics.bind(env.task.robot.actuators).gainprm[0, 0]
+    assert draws['actuator_kp'][0] == pytest.approx((gain - 3.0) / 0.2)
+  assert suite.load('dclaw', 'pose_random').task.dynamics_draws == {}
+  env.close()
+
+
 def test_dkitty_sees_the_terrain_under_its_torso():
   env = suite.load(
     'dkitty', 'walk_random_dynamics', task_kwargs={'privileged': True}, seed=2

@@ -450,6 +450,19 @@ class RobelTask(composer.Task):
   def dynamics(self) -> randomization.DynamicsRanges | None:
     return self._randomizer.ranges if self._randomizer else None
 
+  @property
+  def dynamics_draws(self) -> dict[str, np.ndarray]:
+    """The episode's randomized physics, each quantity's draws scaled to
+    [-1, 1] over its range (`DynamicsRandomizer.draws`, by `DynamicsRanges`
+    field); empty when the task randomizes no physics."""
+    if self._randomizer is None:
+      return {}
+    draws, offset = {}, 0
+    for name, size in self._randomizer.quantities:
+      draws[name] = self._randomizer.draws[offset : offset + size].copy()
+      offset += size
+    return draws
+
   def set_randomization_scale(self, scale: float) -> None:
     """Moves the episodes' randomized physics (and the D'Kitty's terrain)
     to `scale` of their distance from the nominal robot, from the next
