@@ -25,6 +25,10 @@ policy solves, against their number if the policies failed independently
 (the product of their failure rates): an episode some policy solves is
 not made infeasible by its draws. With `--output`, one JSON line per
 policy and episode.
+
+Also printed: each policy's failed episodes, how many of them ended early
+and the median final score (ROBEL's score at the last step) of the rest:
+how near a policy that did not fall ended.
 """
 
 import argparse
@@ -91,6 +95,7 @@ def play(domain: str, task: str, path: str, count: int) -> list[dict]:
       'success': record['success'],
       'ended_early': steps < env.task.episode_steps,
       'score': record['mean_score'],
+      'final_score': record['final_score'],
       'draws': draws,
     })  # fmt: skip
   env.close()
@@ -124,8 +129,24 @@ def table(results: dict[str, list[dict]]) -> str:
         for rows in results.values()
       )
       lines.append(f'{quantity + " " + part:28s}{cells}')
+  lines.append(_failures(results))
   lines.append(_unsolved(results))
   return '\n'.join(lines)
+
+
+def _failures(results: dict[str, list[dict]]) -> str:
+  """Per policy: its failed episodes, those ended early, and the median
+  final score of the others (how near they ended)."""
+  cells = []
+  for i, rows in enumerate(results.values()):
+    failed = [r for r in rows if not r['success']]
+    early = sum(r['ended_early'] for r in failed)
+    last = [r['final_score'] for r in failed if not r['ended_early']]
+    median = f'{np.median(last):.3f}' if last else '-'
+    cells.append(f'policy {i} {len(failed)} ({early} early, {median})')
+  return 'failed (of them ended early, median final score of the rest): ' + (
+    '; '.join(cells)
+  )
 
 
 def _unsolved(results: dict[str, list[dict]]) -> str:

@@ -131,6 +131,13 @@ def test_randomdynamics_draws_splits_the_episodes_by_what_was_drawn(
     'solved by no policy: 2 of 4 episodes '
     '(if the policies failed independently: 2.0)'
   )
+  rows = [
+    {'success': False, 'ended_early': True, 'final_score': 0.1},
+    {'success': False, 'ended_early': False, 'final_score': 0.6},
+    {'success': False, 'ended_early': False, 'final_score': 0.8},
+    {'success': True, 'ended_early': False, 'final_score': 1.0},
+  ]
+  assert draws._failures({'a': rows}).endswith('policy 0 3 (1 early, 0.700)')
   env = suite.load('dkitty', 'orient_random_dynamics', seed=4)
   timestep = env.reset()
   drawn = draws.drawn(env)
