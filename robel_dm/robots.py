@@ -28,6 +28,10 @@ class Robot:
     scripted_reset_with_object: whether, on a robot, tasks with an object
       (the D'Claw's valve) reset with the scripted procedure by default
       (else with one move to the initial pose).
+    unattended_reset: the reset for many episodes in a row on a virtual
+      bus, whatever ended the last one: 'manual' for a robot that can
+      fall (the bus's simulated person stands it up), None for the task's
+      default.
   """
 
   name: str
@@ -36,6 +40,7 @@ class Robot:
   default_camera: str
   standalone_scene: str
   scripted_reset_with_object: bool = False
+  unattended_reset: str | None = None
 
   @property
   def config_file(self) -> str:
@@ -57,5 +62,6 @@ DKITTY = Robot(
   gym_prefix='DKitty',
   default_camera='follow',
   standalone_scene='stand_fixed',
+  unattended_reset='manual',
 )
 ROBOTS: dict[str, Robot] = {robot.name: robot for robot in (DCLAW, DKITTY)}

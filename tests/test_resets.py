@@ -5,7 +5,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from robel_dm import suite
+from robel_dm import robots, suite
 from robel_dm.hardware import clock as clock_lib
 from robel_dm.hardware import config as config_lib
 from robel_dm.hardware import resets
@@ -318,11 +318,13 @@ def _knock_over(env) -> None:
 
 @pytest.mark.slow
 def test_a_fallen_virtual_dkitty_is_stood_up_by_the_simulated_person():
+  # The reset the D'Kitty declares for episodes in a row (the zoo's).
+  reset = robots.ROBOTS['dkitty'].unattended_reset
   env = suite.load(
     'dkitty',
     'stand_fixed',
     seed=0,
-    robot=suite.RobotOptions('virtual', reset='manual'),
+    robot=suite.RobotOptions('virtual', reset=reset),
   )
   try:
     env.reset()

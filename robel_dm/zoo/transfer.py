@@ -7,10 +7,10 @@ simulator's randomization has no place on it). On a zoo robot the task
 talks to an in-process virtual bus in simulated time (`device_path=
 'virtual'` with the robot's calibration), exactly as to a real robot; a
 D'Kitty that falls is stood back up by the simulated person of
-`reset='manual'`. The same episode seeds serve the simulation and every
-robot. Records go to docs/zoo/transfer.json, one per policy and robot
-('simulation' for the model), and `report` writes the tables of
-docs/zoo.md from them.
+`reset='manual'` (its `robots.Robot.unattended_reset`). The same episode
+seeds serve the simulation and every robot. Records go to
+docs/zoo/transfer.json, one per policy and robot ('simulation' for the
+model), and `report` writes the tables of docs/zoo.md from them.
 """
 
 import dataclasses
@@ -92,8 +92,9 @@ def evaluate_pairing(pairing: Pairing) -> dict[str, Any]:
   episodes = EPISODES['fixed' if task.endswith('_fixed') else 'random']
   robot_options = dynamics = None
   if pairing.robot is not None:
-    reset = 'manual' if domain == 'dkitty' else None
-    robot_options = suite.RobotOptions('virtual', reset=reset)
+    robot_options = suite.RobotOptions(
+      'virtual', reset=robots.ROBOTS[domain].unattended_reset
+    )
     dynamics = str(pairing.robot.path)
   results = evaluation.evaluate(
     evaluation.EvalConfig(
