@@ -885,7 +885,8 @@ def test_a_mean_over_seeds_counts_its_marked_seeds_in_words():
     '0.89 (seeds 0.80-0.97; 1 seed borderline ~)'
   )
   assert report._spread([near, clear, old]) == (
-    '0.59 (seeds 0.00-0.97; 1 seed borderline ~; 1 seed of protocol 1 †)'
+    '0.59 (seeds 0.00-0.97; 1 seed borderline ~; '
+    '1 seed of an earlier protocol †)'
   )
   assert report._spread([near]) == '0.80~'  # A single run's own mark.
 

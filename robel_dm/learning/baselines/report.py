@@ -58,8 +58,8 @@ def _interval(row: dict) -> tuple[float, float]:
 
 
 def _marks(row: dict) -> str:
-  """† a record of protocol 1 (being made again); ~ a 95% interval that
-  contains the solved rate."""
+  """† a record of an earlier protocol than `baselines.PROTOCOL`; ~ a 95%
+  interval that contains the solved rate."""
   marks = '' if row.get('protocol', 1) >= baselines.PROTOCOL else '†'
   low, high = _interval(row)
   if low < baselines.PLAN['solved'] < high:
@@ -145,7 +145,8 @@ def _spread(group: list[dict]) -> str:
   if len(values) == 1:
     return f'{mean:.2f}{_marks(group[0])}'
   cell = f'{mean:.2f} (seeds {min(values):.2f}-{max(values):.2f}'
-  for mark, meaning in (('~', 'borderline ~'), ('†', 'of protocol 1 †')):
+  meanings = (('~', 'borderline ~'), ('†', 'of an earlier protocol †'))
+  for mark, meaning in meanings:
     count = sum(mark in _marks(row) for row in group)
     if count:
       cell += f'; {count} seed{"s" * (count > 1)} {meaning}'
@@ -355,7 +356,7 @@ def progress(rows: list[dict]) -> str:
   outside = len(recorded - {r.name for r in table})
   old = sum(row.get('protocol', 1) < baselines.PROTOCOL for row in rows)
   protocols = (
-    f'{old} of protocol 1, marked †'
+    f'{old} of an earlier protocol, marked †'
     if old
     else f'all of protocol {baselines.PROTOCOL}'
   )
