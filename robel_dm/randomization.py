@@ -198,11 +198,13 @@ class DynamicsRandomizer:
       'body_inertia': model.body_inertia.copy(),
     }
 
-  @property
-  def quantities(self) -> tuple[tuple[str, int], ...]:
-    """(`DynamicsRanges` field, number of draws) of what `draws` holds,
-    in its order."""
-    return tuple(self._quantities)
+  def draws_by_quantity(self) -> dict[str, np.ndarray]:
+    """`draws` split by `DynamicsRanges` field, in its order (copies)."""
+    split, offset = {}, 0
+    for name, size in self._quantities:
+      split[name] = self._draws[offset : offset + size].copy()
+      offset += size
+    return split
 
   @property
   def draw_count(self) -> int:

@@ -457,11 +457,7 @@ class RobelTask(composer.Task):
     field); empty when the task randomizes no physics."""
     if self._randomizer is None:
       return {}
-    draws, offset = {}, 0
-    for name, size in self._randomizer.quantities:
-      draws[name] = self._randomizer.draws[offset : offset + size].copy()
-      offset += size
-    return draws
+    return self._randomizer.draws_by_quantity()
 
   def set_randomization_scale(self, scale: float) -> None:
     """Moves the episodes' randomized physics (and the D'Kitty's terrain)
