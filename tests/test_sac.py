@@ -35,6 +35,7 @@ class _Random(gymnasium.Env):
 
 
 def _model(seed=0, **kwargs):
+  from stable_baselines3.common.logger import Logger  # noqa: PLC0415
   from stable_baselines3.common.vec_env import DummyVecEnv  # noqa: PLC0415
 
   agents.single_thread()
@@ -47,9 +48,12 @@ def _model(seed=0, **kwargs):
     'policy_kwargs': {'net_arch': [8, 8]},
     **kwargs,
   }
-  return sac_lib.SAC(
+  model = sac_lib.SAC(
     'MlpPolicy', DummyVecEnv([_Random]), seed=seed, verbose=0, **settings
   )
+  # SB3's default logger makes a folder in /tmp per learn() call.
+  model.set_logger(Logger(folder=None, output_formats=[]))
+  return model
 
 
 def test_numpy_acting_samples_sbx_actors_distribution():

@@ -32,10 +32,11 @@ class _Violating(gymnasium.Env):
 
 
 def _model():
+  from stable_baselines3.common.logger import Logger  # noqa: PLC0415
   from stable_baselines3.common.vec_env import DummyVecEnv  # noqa: PLC0415
 
   agents.single_thread()
-  return sac_lib.SAC(
+  model = sac_lib.SAC(
     'MlpPolicy',
     DummyVecEnv([_Violating]),
     seed=0,
@@ -47,6 +48,9 @@ def _model():
     buffer_size=1000,
     policy_kwargs={'net_arch': [8, 8]},
   )
+  # SB3's default logger makes a folder in /tmp per learn() call.
+  model.set_logger(Logger(folder=None, output_formats=[]))
+  return model
 
 
 def test_the_multiplier_rises_over_budget_and_falls_under_it():
