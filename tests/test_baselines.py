@@ -633,6 +633,26 @@ def test_a_recorded_run_chosen_by_name_says_so_and_force_makes_it_again(
   assert cli.main(['train', '--force']) == 2  # --force needs --only.
 
 
+@pytest.mark.slow
+def test_a_recorded_run_being_made_again_goes_on_without_force(sandbox, capsys):
+  # A remake (--force) cut short resumes like any run: without --force,
+  # which would start it over.
+  name = 'dclaw_pose_random_sac_seed0'
+  run = baselines.Run('dclaw', 'pose_random', 'sac', 0)
+  assert cli.main(['train', f'--only={name}']) == 0
+  row = json.loads(baselines.RESULTS.read_text())[0]
+  for reading in (baselines.TEST, baselines.VALIDATION):
+    (run.directory / reading).unlink()  # As if stopped before them.
+  assert baselines.in_progress(run) and baselines.recorded(run)
+  capsys.readouterr()
+  assert cli.main(['train', f'--only={name}']) == 0
+  assert 'recorded (success' not in capsys.readouterr().out
+  assert baselines.finished(run)
+  again = json.loads(baselines.RESULTS.read_text())[0]
+  keep = ('success', 'score', 'curve', 'env_steps', 'violations')
+  assert {k: again[k] for k in keep} == {k: row[k] for k in keep}
+
+
 def test_a_queue_takes_its_share_and_bad_selections_are_refused(sandbox):
   with pytest.raises(ValueError, match='no run of the table matches'):
     baselines.select('nothing_*')
@@ -766,6 +786,24 @@ def test_a_warm_run_starts_from_the_random_variant_and_waits_for_it(sandbox):
   assert baselines.train_run(run, log=lines.append) is None
   assert lines == [f'{run.name}: waits for {source.name} to start from']
   assert not run.directory.exists()  # Nothing was started.
+  # Recorded, its folder gone (a fresh clone): the queue will not make it
+  # again by itself, so the line says how.
+  record = {
+    'domain': 'dclaw',
+    'task': 'pose_random',
+    'task_kwargs': {},
+    'algo': 'sac',
+    'seed': 0,
+  }
+  baselines.RESULTS.parent.mkdir(parents=True)
+  baselines.RESULTS.write_text(json.dumps([record]))
+  lines.clear()
+  assert baselines.train_run(run, log=lines.append) is None
+  assert lines == [
+    f'{run.name}: waits for {source.name} to start from (recorded, but its '
+    'folder with the networks is not here: robel-baselines train '
+    f'--only={source.name} --force makes it again)'
+  ]
   assert baselines.Run('dclaw', 'pose_random', 'sac', 0).source() is None
 
 

@@ -287,6 +287,14 @@ def settled(run: Run) -> bool:
   return row is not None and row.get('protocol', 1) >= PROTOCOL
 
 
+def in_progress(run: Run) -> bool:
+  """Whether the run's folder holds a run begun and not finished (for a
+  recorded run: one being made again, `--force`)."""
+  from robel_dm.learning import training  # noqa: PLC0415
+
+  return (run.directory / training.CONFIG).is_file() and not finished(run)
+
+
 def done(run: Run) -> bool:
   """Whether the run needs no more training: its test was read, or its
   record is of the current protocol."""
@@ -427,7 +435,7 @@ def train_run(run: Run, log=print, demos: tuple[str, ...] = ()) -> dict | None:
     raise ValueError(f'{run.name}: its agent learns from demonstrations')
   source = run.source()
   if source is not None and not finished(source):
-    log(f'{run.name}: waits for {source.name} to start from')
+    log(f'{run.name}: waits for {source.name} to start from{_why(source)}')
     return None
   config = run.config(demos)
   resume = (run.directory / training.CONFIG).is_file()
@@ -506,6 +514,17 @@ def _to_80(log: list[dict]) -> dict | None:
   """The first training evaluation at or above the solved rate."""
   return next(
     (row for row in log if row['success_rate'] >= PLAN['solved']), None
+  )
+
+
+def _why(source: Run) -> str:
+  """What a run waiting for `source` needs, where the queue will not make
+  it: a recorded source whose folder (its networks) is not here."""
+  if not recorded(source) or in_progress(source):
+    return ''
+  return (
+    f' (recorded, but its folder with the networks is not here: '
+    f'robel-baselines train --only={source.name} --force makes it again)'
   )
 
 

@@ -11,6 +11,7 @@ from robel_dm.learning.baselines import (
   done,
   finished,
   forget,
+  in_progress,
   merge_results,
   record,
   recorded,
@@ -65,7 +66,7 @@ def train_queue(
     elif finished(run) and not recorded(run):  # Its merge was cut short.
       merge_results([record(run)])
       continue
-    elif done(run):
+    elif done(run) and not in_progress(run):  # A remake goes on.
       if pattern:
         _say_recorded(run, log)
       continue
