@@ -151,3 +151,19 @@ def test_randomdynamics_draws_splits_the_episodes_by_what_was_drawn(
   assert -1.0 <= drawn['terrain.mean'] <= 1.0
   assert 0.0 < drawn['terrain.spread'] <= 2.0
   env.close()
+
+
+@pytest.mark.slow
+def test_update_cost_times_each_agents_own_update_step(benchmarks):
+  import argparse  # noqa: PLC0415
+
+  module = benchmarks('update_cost')
+  args = argparse.Namespace(transitions=200, warmup=1, calls=1)
+  sac, droq = (module.measure(name, args) for name in ('sac', 'droq'))
+  # Per env step: the agent's updates per step times one update's cost.
+  assert sac['updates_per_env_step'] == 1 and droq['updates_per_env_step'] == 10
+  assert droq['cpu_ms_per_env_step'] == pytest.approx(
+    10 * droq['cpu_ms_per_update']
+  )
+  assert sac['batch_size'] == droq['batch_size'] == 128
+  assert sac['cpu_ms_per_update'] > 0

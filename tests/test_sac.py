@@ -1,5 +1,7 @@
 """The default agent's SAC: sbx's updates, acting and replay in numpy."""
 
+import os
+
 import numpy as np
 import pytest
 
@@ -159,6 +161,43 @@ def test_compiled_updates_are_cached_for_later_runs(tmp_path):
   subprocess.run([sys.executable, '-c', program], env=env, check=True)
   cache = tmp_path / 'robel_dm' / 'jax'
   assert any(cache.iterdir()), 'no compilation was cached'
+
+
+@pytest.mark.skipif(
+  not hasattr(os, 'sched_setaffinity') or len(os.sched_getaffinity(0)) < 2,
+  reason='needs Linux and two cores',
+)
+def test_jax_starts_with_one_worker_and_every_thread_keeps_its_cores():
+  import subprocess  # noqa: PLC0415
+  import sys  # noqa: PLC0415
+
+  env = {
+    key: value
+    for key, value in os.environ.items()
+    if not key.startswith(('JAX_', 'XLA_'))
+  }
+  program = (
+    'import os, pathlib\n'
+    'from robel_dm.learning import agents\n'
+    'cores = os.sched_getaffinity(0)\n'
+    'agents.single_thread()\n'
+    'import jax\n'
+    'jax.jit(lambda x: x @ x)(jax.numpy.ones((64, 64))).block_until_ready()\n'
+    "threads = list(pathlib.Path('/proc/self/task').iterdir())\n"
+    "names = [(t / 'comm').read_text().strip() for t in threads]\n"
+    "print(names.count('tf_XLAEigen'))\n"
+    'print(all(os.sched_getaffinity(int(t.name)) == cores for t in threads))\n'
+  )
+  out = subprocess.run(
+    [sys.executable, '-c', program],
+    env=env,
+    check=True,
+    capture_output=True,
+    text=True,
+  ).stdout.split()
+  # XLA's pool has a worker per core the process could use when JAX
+  # started: one, so that an update runs on one core.
+  assert out == ['1', 'True']
 
 
 class _Other(_Random):

@@ -32,6 +32,7 @@ cores (benchmarks/training_speed.py measures it against `sac_sb3`, SB3's
 SAC with its defaults). Every agent learns on one CPU thread.
 """
 
+import contextlib
 import dataclasses
 import importlib.util
 import os
@@ -360,9 +361,37 @@ def single_thread() -> None:
   # threshold for caching but seconds in all: cache every one.
   os.environ.setdefault('JAX_COMPILATION_CACHE_DIR', str(_default_jax_cache()))
   os.environ.setdefault('JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS', '0')
+  _start_jax_on_one_core()
   import torch  # noqa: PLC0415 (heavy; only when learning)
 
   torch.set_num_threads(1)
+
+
+def _start_jax_on_one_core() -> None:
+  """Starts JAX's CPU client (if not started yet) while this thread may
+  use one core, then gives every thread of the process its cores back.
+
+  XLA sizes its thread pool by the cores the process may use when the
+  client starts, whatever `XLA_FLAGS` say; with a worker per core an
+  update spreads over both cores of a 2-core machine at 1.3-1.6 times
+  the CPU time (benchmarks/update_cost.py), taken from the run on the
+  other core.
+  """
+  if not hasattr(os, 'sched_setaffinity'):  # Linux only.
+    return
+  try:
+    import jax  # noqa: PLC0415 (heavy; only when learning)
+  except ImportError:  # A torch-only install.
+    return
+  cores = os.sched_getaffinity(0)
+  os.sched_setaffinity(0, {min(cores)})
+  try:
+    jax.devices()  # Starts the client; a no-op once it is started.
+  finally:
+    # Threads started meanwhile inherited the one core.
+    for thread in pathlib.Path('/proc/self/task').iterdir():
+      with contextlib.suppress(OSError):  # Ended meanwhile.
+        os.sched_setaffinity(int(thread.name), cores)
 
 
 def shared_random_streams() -> dict[str, Any]:
