@@ -644,6 +644,7 @@ def test_a_recorded_run_being_made_again_goes_on_without_force(sandbox, capsys):
   for reading in (baselines.TEST, baselines.VALIDATION):
     (run.directory / reading).unlink()  # As if stopped before them.
   assert baselines.in_progress(run) and baselines.recorded(run)
+  assert scheduling.runs_to_make(name) == [run]  # On Ray too.
   capsys.readouterr()
   assert cli.main(['train', f'--only={name}']) == 0
   assert 'recorded (success' not in capsys.readouterr().out

@@ -88,15 +88,22 @@ def _remote_train_run(run: Run, plan: dict, runs_dir: pathlib.Path):
   return make_run(run, log=lambda line: None)
 
 
+def runs_to_make(pattern: str | None) -> list[Run]:
+  """The selected runs not yet recorded or done, and remakes begun."""
+  return [
+    run
+    for run in select(pattern)
+    if not done(run) or not recorded(run) or in_progress(run)
+  ]
+
+
 def train_ray(address: str, pattern: str | None) -> list[dict]:
   """Every selected run as a Ray task (one CPU each); the records merged
   into docs/baselines.json as they end. `address` 'local' starts a Ray
   instance on this machine for the call."""
   from robel_dm.evaluation import workers  # noqa: PLC0415
 
-  chosen = [
-    run for run in select(pattern) if not done(run) or not recorded(run)
-  ]
+  chosen = runs_to_make(pattern)
   with workers.ray_session(address) as ray:
     remote = ray.remote(num_cpus=1)(_remote_train_run)
     settings = baselines.PLAN, baselines.RUNS_DIR
