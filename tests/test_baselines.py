@@ -688,6 +688,28 @@ def test_list_says_what_the_runs_left_cost(sandbox, capsys):
   assert 'runs to do' in out
 
 
+def test_list_says_which_runs_are_in_progress_and_which_being_made_again(
+  sandbox, capsys
+):
+  fixed = baselines.Run('dclaw', 'pose_fixed', 'sac', 0)
+  random = baselines.Run('dclaw', 'pose_random', 'sac', 0)
+  baselines.merge_results([
+    _cost('dclaw', 'pose_fixed', 16, 1.0) | {'protocol': baselines.PROTOCOL}
+  ])  # fmt: skip
+  for run in (fixed, random):  # Both begun (a config), neither tested.
+    run.directory.mkdir(parents=True)
+    (run.directory / training.CONFIG).write_text('{}')
+  assert cli.main(['list']) == 0
+  lines = capsys.readouterr().out.splitlines()
+  assert f'{fixed.name:50s} being made again' in lines
+  assert f'{random.name:50s} in progress' in lines
+  (fixed.directory / baselines.TEST).write_text('{}')
+  shutil.rmtree(random.directory)
+  assert cli.main(['list']) == 0
+  lines = capsys.readouterr().out.splitlines()
+  assert f'{fixed.name:50s} done' in lines and random.name in lines
+
+
 def _cost(domain, task, env_steps, cpu_minutes) -> dict:
   return {
     'domain': domain, 'task': task, 'task_kwargs': {}, 'algo': 'sac',

@@ -31,13 +31,13 @@ def main(argv: list[str] | None = None) -> int:
     action='store_true',
     help='make the chosen runs again from the start (needs --only)',
   )
-  commands.add_parser('list', help='the runs and whether each is done')
+  commands.add_parser('list', help='the runs and where each stands')
   commands.add_parser('report', help='docs/baselines.md, figures, policies')
   args = parser.parse_args(argv)
   try:
     if args.command == 'list':
       for run in baselines.runs():
-        print(f'{run.name:50s} {"done" if baselines.done(run) else ""}')
+        print(f'{run.name:50s} {baselines.status(run)}'.rstrip())
       rows = (
         json.loads(baselines.RESULTS.read_text())
         if baselines.RESULTS.is_file()

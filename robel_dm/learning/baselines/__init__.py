@@ -301,6 +301,15 @@ def done(run: Run) -> bool:
   return finished(run) or settled(run)
 
 
+def status(run: Run) -> str:
+  """What `robel-baselines list` says of the run: 'being made again' (a
+  recorded run whose remake is begun and not finished), 'in progress',
+  'done', or '' (not begun)."""
+  if in_progress(run):
+    return 'being made again' if recorded(run) else 'in progress'
+  return 'done' if done(run) else ''
+
+
 def _curve_end(run: Run, rows: list[dict] | None = None) -> int | float:
   """The last evaluation's env steps (epochs for bc), from the run's log
   or from its `rows` if already read."""
