@@ -187,6 +187,16 @@ def test_a_sweep_checks_every_task_policy_before_the_first_runs(
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize('device', ['', ' '])
+def test_an_empty_device_path_is_refused_not_simulated(run_main, device):
+  # As `--device_path=$(head -1 bus.txt)` gives before the bus prints.
+  code, out, err = run_main(
+    '--domain=dclaw', '--task=pose_fixed', '--episodes=1',
+    f'--device_path={device}',
+  )  # fmt: skip
+  _assert_one_line_error(code, out, err, '--device_path is empty')
+
+
 def test_a_sound_policy_file_still_runs(run_main, tmp_path):
   path = _write(_policy(), tmp_path / 'policy.npz')
   output = tmp_path / 'results.json'

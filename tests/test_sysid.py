@@ -247,6 +247,8 @@ def test_command_line_errors_are_one_line(tmp_path):
      'no calibration file none.json'),
     (['fit', str(tmp_path), '--domain=dclaw'], 'is not a robel_dm recording'),
     (['fit', '--domain=dclaw'], 'fit needs the recording directories'),
+    (['excite', f'--record={tmp_path / "r"}', '--device_path='],
+     '--device_path is empty'),
   ]  # fmt: skip
   for arguments, message in cases:
     done = subprocess.run(

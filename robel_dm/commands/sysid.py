@@ -17,6 +17,7 @@ import sys
 from absl import app, flags
 
 from robel_dm import calibration, command_help, provenance, recording, suite
+from robel_dm.evaluation import cli
 from robel_dm.sysid import excite as excite_lib
 from robel_dm.sysid import fit as fit_lib
 from robel_dm.sysid import report
@@ -62,6 +63,7 @@ def _define_flags() -> None:
 
 
 def _robot() -> suite.RobotOptions | None:
+  cli.check_device_path(FLAGS)
   if not FLAGS.device_path:
     if FLAGS.robot_config:
       raise ValueError('--robot_config needs --device_path (a robot)')

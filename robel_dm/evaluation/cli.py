@@ -157,6 +157,17 @@ def _define_robot_flags() -> None:
   )
 
 
+def check_device_path(flag_values: flags.FlagValues) -> None:
+  """Raises ValueError for a --device_path given empty (an empty `$(...)`
+  in a shell): never read as "simulate"."""
+  device = flag_values['device_path']
+  if device.present and not (device.value or '').strip():
+    raise ValueError(
+      "--device_path is empty: give the robot's serial device (e.g. "
+      "/dev/ttyUSB0) or 'virtual', or leave the flag out to simulate"
+    )
+
+
 def robot_options(flag_values: flags.FlagValues) -> suite.RobotOptions | None:
   """The robot --device_path and ROBOT_OPTION_FLAGS name; None simulates.
 
@@ -165,10 +176,11 @@ def robot_options(flag_values: flags.FlagValues) -> suite.RobotOptions | None:
       (this command's, or another command's that defines them).
 
   Raises:
-    ValueError: for one of those flags without --device_path, or a bad
-      value.
+    ValueError: for one of those flags without --device_path, an empty
+      --device_path, or a bad value.
   """
   fields = {name: flag_values[name].value for name in ROBOT_OPTION_FLAGS}
+  check_device_path(flag_values)
   if not flag_values['device_path'].value:
     given = [name for name, value in fields.items() if value is not None]
     if given:
