@@ -234,6 +234,36 @@ def test_dkitty_stand_up_sequence_runs_and_ends_upright(monkeypatch):
     env.close()
 
 
+def test_dkitty_stand_up_beyond_the_configured_limits_is_refused_unmoved():
+  # The stand-up goes beyond the action ranges on purpose, never beyond the
+  # limits an owner wrote into the robot's configuration.
+  config = dataclasses.replace(
+    config_lib.default('dkitty'), limits={'FRJ11': (-0.1, 0.1)}
+  )
+  env = suite.load(
+    'dkitty',
+    'stand_fixed',
+    seed=0,
+    robot=suite.RobotOptions('virtual', reset='scripted', robot_config=config),
+  )
+  try:
+    goals = env.virtual_bus.goal_positions()
+    with pytest.raises(
+      resets.ResetError,
+      match=r'scripted reset cannot run: joint FRJ11 \(motor 11\) would go '
+      r'to [+-]\d\.\d{3} rad, outside its configured limits '
+      r'\[-0\.100, \+0\.100\]',
+    ):
+      env.reset()
+    assert not any(_torque(env.virtual_bus).values())
+    assert env.virtual_bus.goal_positions() == goals
+    with pytest.raises(ValueError, match='outside its configured limits'):
+      env.robot.write_unlimited_goals([11], [1.0])
+    assert env.virtual_bus.goal_positions() == goals
+  finally:
+    env.close()
+
+
 @pytest.mark.slow
 def test_dkitty_that_cannot_get_up_fails_clearly_and_is_released():
   env = suite.load(

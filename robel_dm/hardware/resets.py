@@ -329,7 +329,8 @@ def make(
 
 # ROBEL's scripted D'Kitty stand-up (docs/robel_reference.md section 4.5). Joint
 # angles per pair of legs (the group's two legs in ID order), rad; beyond the
-# action ranges on purpose (reset moves are not clipped to them).
+# action ranges on purpose (reset moves are not clipped to them); limits in
+# the robot configuration refuse the sequence before it starts.
 _TUCK_SPAN = 2.4
 _FOOT_SPAN = 2.5
 _INWARD_TUCK = np.array(
@@ -383,6 +384,7 @@ class DKittyScriptedReset:
     )
 
   def __call__(self, robot, clock, joint_goals, auxiliary_goals) -> None:
+    self._check_limits(robot)
     robot.set_torque(True)
     for attempt in range(1, _MAX_STAND_ATTEMPTS + 1):
       if self.standing():
@@ -399,6 +401,22 @@ class DKittyScriptedReset:
           f'(upright {upright:.2f}, torso height {height:.2f} m)'
         )
     MoveReset()(robot, clock, joint_goals, auxiliary_goals)
+
+  def _check_limits(self, robot) -> None:
+    """Refuses, before anything moves, a sequence that would take a joint
+    beyond the limits of the robot's configuration."""
+    poses = [self._flat_pose(), *self._roll_poses(), *self._tuck_poses()]
+    poses += self._stand_poses()
+    for groups, _ in poses:
+      for ids, angles in groups.items():
+        try:
+          robot.check_configured_limits(ids, angles)
+        except ValueError as error:
+          raise ResetError(
+            f"the D'Kitty's scripted reset cannot run: {error} (widen the "
+            "limits in the robot configuration, or use reset='move' or "
+            "'manual')"
+          ) from None
 
   def _pose(self, robot, clock, groups: dict, seconds: float) -> None:
     """Commands joint angles to groups of motors and waits (bounded)."""
@@ -421,12 +439,47 @@ class DKittyScriptedReset:
         return
       previous = robot.positions.copy()
 
-  def _flatten(self, robot, clock) -> None:
+  def _flat_pose(self) -> tuple[dict, float]:
+    """Legs spread flat to the sides: where flipping and tucking start."""
     left = _INWARD_TUCK.copy()
     left[[0, 3]] = np.pi / 2
     right = _INWARD_TUCK.copy()
     right[[0, 3]] = -np.pi / 2
-    self._pose(robot, clock, {self._left: left, self._right: right}, 4.0)
+    return {self._left: left, self._right: right}, 4.0
+
+  def _roll_poses(self) -> list[tuple[dict, float]]:
+    """A roll from the back onto the legs."""
+    return [
+      ({
+        self._left: _pair([-np.pi / 4, -_TUCK_SPAN, _FOOT_SPAN]),
+        self._right: _pair([-5 * np.pi / 4, 0, 0]),
+      }, 4.0),
+      ({
+        self._left: _pair([np.pi / 2, 0, 0]),
+        self._right: _pair([-np.pi / 2, 0, 0]),
+      }, 4.0),
+    ]  # fmt: skip
+
+  def _tuck_poses(self) -> list[tuple[dict, float]]:
+    return [
+      ({self._left: _INWARD_TUCK}, 4.0),
+      ({self._right: _INWARD_TUCK}, 4.0),
+    ]
+
+  def _stand_poses(self) -> list[tuple[dict, float]]:
+    everything = self._left + self._right
+    ids = tuple(np.asarray(everything)[np.argsort(everything)])
+    standing = np.zeros(len(everything))
+    return [
+      ({self._back: _pair([0, _TUCK_SPAN, -_FOOT_SPAN])}, 4.0),
+      ({self._front: _pair([0, -_TUCK_SPAN, _FOOT_SPAN])}, 4.0),
+      ({ids: standing}, 3.0),
+      ({ids: np.tile([0, np.pi / 6, -np.pi / 6], 4)}, 1.0),
+      ({ids: standing}, 3.0),
+    ]
+
+  def _flatten(self, robot, clock) -> None:
+    self._pose(robot, clock, *self._flat_pose())
 
   def _flip_if_upside_down(self, robot, clock) -> None:
     for _ in range(_MAX_FLIP_ATTEMPTS):
@@ -435,29 +488,14 @@ class DKittyScriptedReset:
       self._flatten(robot, clock)
       if upright_and_height(self._torso)[0] >= 0:
         return
-      self._pose(robot, clock, {
-        self._left: _pair([-np.pi / 4, -_TUCK_SPAN, _FOOT_SPAN]),
-        self._right: _pair([-5 * np.pi / 4, 0, 0]),
-      }, 4.0)  # fmt: skip
-      self._pose(robot, clock, {
-        self._left: _pair([np.pi / 2, 0, 0]),
-        self._right: _pair([-np.pi / 2, 0, 0]),
-      }, 4.0)  # fmt: skip
+      for groups, seconds in self._roll_poses():
+        self._pose(robot, clock, groups, seconds)
 
   def _tuck(self, robot, clock) -> None:
     self._flatten(robot, clock)
-    self._pose(robot, clock, {self._left: _INWARD_TUCK}, 4.0)
-    self._pose(robot, clock, {self._right: _INWARD_TUCK}, 4.0)
+    for groups, seconds in self._tuck_poses():
+      self._pose(robot, clock, groups, seconds)
 
   def _stand_up(self, robot, clock) -> None:
-    everything = self._left + self._right
-    order = np.argsort(everything)
-    standing = np.zeros(len(everything))
-    self._pose(robot, clock, {
-      self._back: _pair([0, _TUCK_SPAN, -_FOOT_SPAN])}, 4.0)  # fmt: skip
-    self._pose(robot, clock, {
-      self._front: _pair([0, -_TUCK_SPAN, _FOOT_SPAN])}, 4.0)  # fmt: skip
-    ids = tuple(np.asarray(everything)[order])
-    self._pose(robot, clock, {ids: standing}, 3.0)
-    self._pose(robot, clock, {ids: np.tile([0, np.pi / 6, -np.pi / 6], 4)}, 1.0)
-    self._pose(robot, clock, {ids: standing}, 3.0)
+    for groups, seconds in self._stand_poses():
+      self._pose(robot, clock, groups, seconds)

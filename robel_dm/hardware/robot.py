@@ -73,6 +73,9 @@ class HardwareRobot:
     self._offset = np.array([m.offset for m in motors])
     self._joint_ids = tuple(m.id for m in joints)
     self._limits = (np.full(len(joints), -np.inf), np.full(len(joints), np.inf))
+    # The configuration's own limits: resets go beyond the action ranges,
+    # never beyond these.
+    self._configured: dict[str, tuple[float, float]] = {}
     self._health = health
     self._steps_since_check = 0
     self._owner = os.getpid()
@@ -133,6 +136,7 @@ class HardwareRobot:
         they narrow the limits further.
     """
     low, high = np.array(low, float), np.array(high, float)
+    self._configured = dict(configured or {})
     for i, motor in enumerate(self._joints):
       if configured and motor.name in configured:
         low[i] = max(low[i], configured[motor.name][0])
@@ -218,17 +222,33 @@ class HardwareRobot:
     self._client.write_goal_positions(motor_angles, self._joint_ids)
     return goals
 
+  def check_configured_limits(self, motor_ids, joint_angles) -> None:
+    """Raises ValueError naming the first of the joints `motor_ids` whose
+    angle lies outside the limits its robot configuration sets (`limits`;
+    joints without them take any finite angle)."""
+    for motor_id, angle in zip(motor_ids, joint_angles, strict=True):
+      name = self._joints[self._joint_ids.index(motor_id)].name
+      low, high = self._configured.get(name, (-np.inf, np.inf))
+      if not low <= angle <= high:
+        raise ValueError(
+          f'joint {name} (motor {motor_id}) would go to {angle:+.3f} rad, '
+          f'outside its configured limits [{low:+.3f}, {high:+.3f}]'
+        )
+
   def write_unlimited_goals(self, motor_ids, joint_angles) -> None:
-    """Goals for some joints without the action-range limits (resets).
+    """Goals for some joints beyond the action ranges (resets), within the
+    configuration's limits.
 
     Raises:
-      ValueError: for non-finite angles or unknown motors.
+      ValueError: for non-finite angles, unknown motors or angles outside
+        the configured limits (nothing is sent).
       RobotOwnerError: in a process that did not open the robot.
     """
     self._check_owner()
     joint_angles = np.asarray(joint_angles, dtype=float)
     if not np.all(np.isfinite(joint_angles)):
       raise ValueError(f'non-finite joint goals {joint_angles.tolist()}')
+    self.check_configured_limits(motor_ids, joint_angles)
     motors = [self._joints[self._joint_ids.index(i)] for i in motor_ids]
     self._client.write_goal_positions(
       [m.to_motor(a) for m, a in zip(motors, joint_angles, strict=True)],
