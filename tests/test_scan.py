@@ -98,6 +98,22 @@ def test_healthy_dclaw_bus_has_no_problems():
   assert 'FFJ10' in output and 'XH430-V350 (1040)' in output
 
 
+def test_the_table_gives_each_configured_joint_its_angle_through_the_offsets():
+  # What calibrating an offset is checked against, with the torque off.
+  config = config_lib.default('dclaw')
+  first = config.joints[0]
+  with _serve() as (bus, device):
+    bus.servo(first.id).set_present(1024, 0, 0)
+    code, output = _run(device, robot_config=config)
+  assert code == 0
+  joint = first.to_joint(1024 * table.RADIANS_PER_TICK)
+  line = next(row for row in output.splitlines() if first.name in row)
+  assert f'1024 (+1.571 rad; joint {joint:+.3f})' in line
+  valve = next(m for m in config.auxiliary if m.id == 50)
+  line = next(row for row in output.splitlines() if valve.name in row)
+  assert f'joint {valve.to_joint(math.pi):+.3f}' in line
+
+
 def test_firmware_refusing_block_reads_is_read_item_by_item(monkeypatch):
   with _serve() as (bus, device):
     bus.servo(11).set(table.OPERATING_MODE, 1)

@@ -21,6 +21,15 @@ def _format_rate(bits_per_second: int | None) -> str:
   return f'{bits_per_second / 1_000:g}k'
 
 
+def _position(report: MotorReport, motor: config_lib.Motor | None) -> str:
+  """Ticks and motor angle; for a configured motor also its joint angle
+  through the configuration (what an offset is calibrated against)."""
+  text = f'{report.position} ({report.position_rad:+.3f} rad'
+  if motor is not None:
+    text += f'; joint {motor.to_joint(report.position_rad):+.3f}'
+  return text + ')'
+
+
 def _row(report: MotorReport, robot_config) -> list[str]:
   motor = configured_motors(robot_config).get(report.id)
   model = f'{report.model_name or "unknown"} ({report.model_number})'
@@ -31,7 +40,7 @@ def _row(report: MotorReport, robot_config) -> list[str]:
   errors_ = report.hardware_error_names
   row += [
     str(report.firmware),
-    f'{report.position} ({report.position_rad:+.3f} rad)',
+    _position(report, motor),
     f'{report.temperature} C',
     f'{report.input_voltage:.1f} V',
     f'{mode} {table.OPERATING_MODES.get(mode, "unknown")}',
