@@ -405,7 +405,10 @@ def test_an_evaluation_cut_short_is_made_again_on_resume(tmp_path, monkeypatch):
 
 
 @pytest.mark.slow
-def test_sigterm_says_what_was_saved_and_how_to_resume(tmp_path):
+@pytest.mark.parametrize('to_group', [False, True])
+def test_sigterm_says_what_was_saved_and_how_to_resume(tmp_path, to_group):
+  # To the group (a service manager's stop, `kill -- -PGID`), the learner
+  # gets it too and must still save the networks when the actor asks.
   root = pathlib.Path(__file__).resolve().parents[1]
   output = tmp_path / 'run'
   process = subprocess.Popen(
@@ -417,13 +420,17 @@ def test_sigterm_says_what_was_saved_and_how_to_resume(tmp_path):
     stdout=subprocess.PIPE,
     stderr=subprocess.PIPE,
     preexec_fn=child_signals.default,
+    process_group=0,
     text=True,
   )  # fmt: skip
   try:
     for line in process.stdout:  # Wait for a training episode.
       if line.startswith('episode 2 '):
         break
-    process.send_signal(signal.SIGTERM)
+    if to_group:
+      os.killpg(process.pid, signal.SIGTERM)
+    else:
+      process.send_signal(signal.SIGTERM)
     _, stderr = process.communicate(timeout=120)
   finally:
     if process.poll() is None:
@@ -432,6 +439,12 @@ def test_sigterm_says_what_was_saved_and_how_to_resume(tmp_path):
   assert 'stopped by SIGTERM: the robot is released (torque off)' in stderr
   assert f'in {output}; the same command with --resume continues' in stderr
   assert (output / train_lib.CHECKPOINT).is_file()
+  # Saved at the stop, with the transitions it had (not only the empty
+  # checkpoint of the start).
+  counts = json.loads(
+    (output / train_lib.CHECKPOINT).with_suffix('.json').read_text()
+  )
+  assert counts['transitions'] > 0
 
 
 @pytest.mark.slow

@@ -99,9 +99,12 @@ def learner_main(setup: LearnerSetup, inbox, outbox, progress) -> None:
   update they allow, and its updates so far.
   """
   try:
-    # Ctrl-C reaches the whole process group: the actor decides when the
-    # learner stops (after saving), not the signal.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # Ctrl-C, a closed terminal and a service manager's stop reach the
+    # whole process group: the actor decides when the learner stops (after
+    # saving), not the signal. Should the actor die, the learner notices
+    # (`_learn`) and ends.
+    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+      signal.signal(signum, signal.SIG_IGN)
     # The robot's control loop wins any contest for a CPU.
     os.nice(_LEARNER_NICENESS)
     agents.single_thread()
@@ -440,9 +443,6 @@ class Learner:
       with contextlib.suppress(RuntimeError):  # It may have died.
         self.request('stop')
     self._process.join(timeout=5)
-    if self._process.is_alive():
-      self._process.terminate()
-      self._process.join(timeout=5)
-    if self._process.is_alive():
+    if self._process.is_alive():  # Stuck: it ignores SIGTERM.
       self._process.kill()
       self._process.join(timeout=5)
