@@ -63,7 +63,8 @@ class VideoWriter:
       import imageio_ffmpeg  # noqa: PLC0415 (the video extra)
     except ImportError as error:
       raise VideoError(
-        'videos need imageio-ffmpeg: pip install "robel_dm[video]"'
+        'videos need imageio-ffmpeg: pip install -e ".[video]" '
+        '(in the checkout)'
       ) from error
     self.path = pathlib.Path(path)
     self.frames = 0

@@ -159,4 +159,6 @@ def test_without_the_hardware_extra_the_error_names_it(missing):
     env={**os.environ, 'MUJOCO_GL': os.environ.get('MUJOCO_GL', 'egl')},
   )
   assert result.returncode == 0, result.stderr
-  assert 'pip install "robel_dm[hardware]"' in result.stdout, result.stdout
+  assert 'pip install -e ".[hardware]" (in the checkout)' in result.stdout, (
+    result.stdout
+  )

@@ -403,7 +403,7 @@ def test_without_the_learn_extra_train_says_what_to_install(tmp_path, missing):
   ]
   assert lines == [
     f'error: training needs the learn extra ({missing} is missing): '
-    'pip install "robel_dm[learn]"'
+    'pip install -e ".[learn]" (in the checkout)'
   ]
   assert not output.exists()
 

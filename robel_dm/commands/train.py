@@ -190,7 +190,7 @@ def main(argv):
     print(
       f'error: training needs the learn extra '
       f'({(error.name or "a package").split(".")[0]} is missing): '
-      'pip install "robel_dm[learn]"',
+      'pip install -e ".[learn]" (in the checkout)',
       file=sys.stderr,
     )
     return 2

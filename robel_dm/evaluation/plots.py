@@ -168,7 +168,8 @@ def plot(
     import matplotlib  # noqa: PLC0415 (only the plot command needs it)
   except ImportError as error:
     raise ModuleNotFoundError(
-      'plots need matplotlib: pip install "robel_dm[learn]"', name=error.name
+      'plots need matplotlib: pip install -e ".[learn]" (in the checkout)',
+      name=error.name,
     ) from error
 
   matplotlib.use('Agg')

@@ -82,7 +82,7 @@ def ray_session(address: str) -> Iterator[Any]:
     import ray  # noqa: PLC0415
   except ImportError as error:
     raise ValueError(
-      'ray_address needs Ray: pip install "robel_dm[scale]"'
+      'ray_address needs Ray: pip install -e ".[scale]" (in the checkout)'
     ) from error
   started = not ray.is_initialized()
   if started:

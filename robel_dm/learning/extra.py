@@ -6,6 +6,6 @@ def missing(error: ImportError) -> ModuleNotFoundError:
   fails: it names the missing package and the extra to install."""
   return ModuleNotFoundError(
     f'robel_dm.learning needs the learn extra ({error.name} is missing): '
-    'pip install "robel_dm[learn]"',
+    'pip install -e ".[learn]" (in the checkout)',
     name=error.name,
   )

@@ -97,7 +97,7 @@ def require_pyarrow():
     import pyarrow.parquet  # noqa: F401, PLC0415
   except ImportError as error:
     raise RecordingError(
-      'recordings need pyarrow: pip install "robel_dm[data]"'
+      'recordings need pyarrow: pip install -e ".[data]" (in the checkout)'
     ) from error
   return pyarrow
 

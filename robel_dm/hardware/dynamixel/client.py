@@ -75,7 +75,8 @@ def _published_progress(fd: int) -> int | None:
 def _require_sdk():
   if sdk is None:
     raise ImportError(
-      'dynamixel_sdk is not installed: pip install "robel_dm[hardware]"'
+      'dynamixel_sdk is not installed: pip install -e ".[hardware]" '
+      '(in the checkout)'
     )
 
 

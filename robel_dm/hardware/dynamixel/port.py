@@ -110,7 +110,7 @@ def _serial():
   except ImportError as error:
     raise ImportError(
       f'the serial port needs pyserial ({error}): '
-      'pip install "robel_dm[hardware]"'
+      'pip install -e ".[hardware]" (in the checkout)'
     ) from error
   return serial
 
