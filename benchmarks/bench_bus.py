@@ -5,11 +5,11 @@ at once, so its own time is the pty round trip), then for the D'Claw (9
 motors) and the D'Kitty (12):
   * bus time: one control step's transactions alone (sync write of the goal
     positions + sync read of current, velocity, position), in a tight loop;
-  * a real-time episode at 10 Hz through `HardwareEnvironment.step`: the
-    software overhead per step (step time minus its bus transactions, the
-    periodic health reads included, minus the wait for the tick) and the
-    jitter of the control period (start-to-start of the motor exchanges,
-    against 100 ms).
+  * a real-time episode through `HardwareEnvironment.step` (D'Claw Pose at
+    20 Hz, D'Kitty Stand at 10 Hz): the software overhead per step (step
+    time minus its bus transactions, the periodic health reads included,
+    minus the wait for the tick) and the jitter of the control period
+    (start-to-start of the motor exchanges, against the task's period).
 Prints them next to the physical bus's time per step at 1 Mbps (wire bytes
 at 10 bits per byte, Return Delay Time 0; docs/dynamixel.md section 5).
 

@@ -1,6 +1,6 @@
 """Measures the effect of robel_dm's documented deviations from ROBEL 0.1.2.
 
-The README's fidelity notes quote these figures. Each one compares what
+docs/fidelity.md quotes these figures. Each one compares what
 robel_dm computes with what ROBEL's code computed, on robel_dm's own
 episodes:
   * Stand/Orient `center_distance_cost`: ROBEL's norm took the torso height

@@ -8,7 +8,8 @@ rest of a robot is code in the layer it belongs to, found by the robot's
 name: its model and entity (`xml/`, `entities/`), its tasks (`tasks/`,
 registered in `registry.DOMAINS[name]`), its hardware configuration
 (`hardware/configs/<name>.json`) and its scripted reset, if any
-(`hardware/resets.py`). The README's "Adding a robot" lists them.
+(`hardware/resets.py`). docs/architecture.md ("One place per robot")
+lists them.
 """
 
 import dataclasses
