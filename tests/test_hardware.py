@@ -8,6 +8,7 @@ whose motors a MuJoCo simulation drives in simulated time.
 
 import json
 import math
+import pathlib
 import time
 
 import numpy as np
@@ -462,6 +463,29 @@ def test_robot_configurations_load_and_reject_mistakes(tmp_path):
     config_lib.load(path)
   with pytest.raises(config_lib.ConfigError, match='not found'):
     config_lib.load(tmp_path / 'missing.json')
+
+
+def test_a_configuration_sets_the_health_limits_and_checks_them(tmp_path):
+  assert config_lib.default('dclaw').health == config_lib.HealthLimits()
+  path = tmp_path / 'robot.json'
+  shipped = pathlib.Path(config_lib.__file__).parent / 'configs' / 'dclaw.json'
+  data = json.loads(shipped.read_text()) | {
+    'health': {'max_current': 2300, 'max_temperature': 75.5}
+  }
+  path.write_text(json.dumps(data))
+  health = config_lib.load(path).health
+  assert (health.max_current, health.max_temperature) == (2300.0, 75.5)
+  assert health.check_every == config_lib.HealthLimits().check_every
+  for bad, message in (
+    ({'max_current': -1}, 'health max_current must be a positive number'),
+    ({'max_temperature': 'hot'}, 'health max_temperature must be a positive'),
+    ({'max_current': True}, 'health max_current must be a positive number'),
+    ({'check_every': 5}, "health has unknown fields \\['check_every'\\]"),
+    ([1500], 'health must be an object'),
+  ):
+    path.write_text(json.dumps(data | {'health': bad}))
+    with pytest.raises(config_lib.ConfigError, match=message):
+      config_lib.load(path)
 
 
 def test_unknown_device_configuration_mismatch_is_rejected(tmp_path):

@@ -6,6 +6,7 @@ Torque Enable (address 64) back through the SDK after the child is gone.
 The others run in-process on `device_path='virtual'`.
 """
 
+import dataclasses
 import json
 import logging
 import select
@@ -327,22 +328,35 @@ def test_after_a_fault_the_environment_refuses_to_step_until_reset(
 
 
 @pytest.mark.slow
-def test_over_current_stops_the_episode_naming_motor_and_current():
+@pytest.mark.parametrize('limit', [None, 2500.0])
+def test_over_current_stops_the_episode_naming_motor_and_current(limit):
+  # A 2 A stall: over the default limit (1.5 A); under a configuration's
+  # own 2.5 A, where a 3 A one is not.
+  config = config_lib.default('dkitty')
+  if limit is not None:
+    health = dataclasses.replace(config.health, max_current=limit)
+    config = dataclasses.replace(config, health=health)
   env = suite.load(
-    'dkitty', 'stand_fixed', seed=0, robot=suite.RobotOptions('virtual')
+    'dkitty',
+    'stand_fixed',
+    seed=0,
+    robot=suite.RobotOptions('virtual', robot_config=config),
   )
   bus = env.virtual_bus
   try:
     env.reset()
     unit = table.MODELS[bus.servo(41).model_number][1]  # mA per unit.
-    bus.servo(41).inject_current(round(2000 / unit))  # A stall: 2 A.
+    bus.servo(41).inject_current(round(2000 / unit))
+    if limit is not None:
+      assert env.step(env.task.normalize_joint_targets(np.zeros(12))).mid()
+      bus.servo(41).inject_current(round(3000 / unit))
     with pytest.raises(
       dynamixel.MotorFaultError, match=r'over-current on motors \[41\]: \['
     ) as error:
       env.step(env.task.normalize_joint_targets(np.zeros(12)))
     assert error.value.motor_ids == (41,)
     current = float(str(error.value).split(': [')[1].split(']')[0])
-    assert current == pytest.approx(2000, abs=unit)
+    assert current == pytest.approx(2000 if limit is None else 3000, abs=unit)
     assert not any(s.torque_enabled for s in bus.servos)
   finally:
     env.close()

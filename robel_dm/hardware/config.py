@@ -20,6 +20,9 @@ File format (JSON object):
   groups: name -> list of motor IDs (for resets and torque control).
   limits (optional): joint name -> [low, high] goal limits, rad; by default
       the model's action range.
+  health (optional): {"max_current": mA, "max_temperature": C}, the limits
+      above which a motor's current or temperature stops the episode and
+      releases the robot; by default 1500 mA and 70 C.
 """
 
 import dataclasses
@@ -68,6 +71,26 @@ class Motor:
 
 
 @dataclasses.dataclass(frozen=True)
+class HealthLimits:
+  """Limits that stop an episode and release the motors.
+
+  Attributes:
+    max_current: |current| above this on any motor is a fault, mA.
+    max_temperature: temperature above this on any motor is a fault, C.
+    check_every: control steps between reads of the hardware-error and
+      temperature registers (one read per motor each).
+  """
+
+  max_current: float = 1500.0
+  max_temperature: float = 70.0
+  check_every: int = 10
+
+
+# The health limits a configuration file may set.
+_HEALTH_FIELDS = ('max_current', 'max_temperature')
+
+
+@dataclasses.dataclass(frozen=True)
 class RobotConfig:
   """The motors of one robot and how they map to the model's joints."""
 
@@ -79,6 +102,7 @@ class RobotConfig:
     default_factory=dict
   )
   baud_rate: int = control_table.DEFAULT_BAUD_RATE
+  health: HealthLimits = HealthLimits()
   source: str = '<memory>'
 
   @property
@@ -194,8 +218,32 @@ def from_dict(data: dict, source: str = '<memory>') -> RobotConfig:
     groups=groups,
     limits=limits,
     baud_rate=baud_rate,
+    health=_health(data.get('health', {}), source),
     source=source,
   )
+
+
+def _health(data: Any, source: str) -> HealthLimits:
+  """The `health` entry of a configuration as HealthLimits."""
+  if not isinstance(data, dict):
+    raise ConfigError(f'{source}: health must be an object {_HEALTH_FIELDS}')
+  unknown = sorted(set(data) - set(_HEALTH_FIELDS))
+  if unknown:
+    raise ConfigError(
+      f'{source}: health has unknown fields {unknown}; known: '
+      f'{list(_HEALTH_FIELDS)}'
+    )
+  for name, value in data.items():
+    if (
+      isinstance(value, bool)
+      or not isinstance(value, (int, float))
+      or not math.isfinite(value)
+      or value <= 0
+    ):
+      raise ConfigError(
+        f'{source}: health {name} must be a positive number, got {value!r}'
+      )
+  return HealthLimits(**{name: float(v) for name, v in data.items()})
 
 
 def load(path: str | os.PathLike) -> RobotConfig:

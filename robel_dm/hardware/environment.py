@@ -399,7 +399,9 @@ def _make_connection(
 ) -> connection_lib.Connection:
   """The connection of a connected client's robot with its clock."""
   robot_config = setup.robot_config
-  robot = robot_lib.HardwareRobot(client, robot_config.joints, setup.auxiliary)
+  robot = robot_lib.HardwareRobot(
+    client, robot_config.joints, setup.auxiliary, robot_config.health
+  )
   if setup.virtual:
     clock = _simulated_clock(client, opened.simulation, setup.motor_ids[0])
   else:

@@ -9,7 +9,6 @@ checks that they still hold their torque: one released by anyone else
 control step instead of being driven on limp.
 """
 
-import dataclasses
 import os
 import time
 
@@ -28,20 +27,8 @@ class RobotOwnerError(dynamixel.DynamixelError):
   """A process other than the robot's owner (a forked child) used it."""
 
 
-@dataclasses.dataclass(frozen=True)
-class HealthLimits:
-  """Limits that stop an episode and release the motors.
-
-  Attributes:
-    max_current: |current| above this on any motor is a fault, mA.
-    max_temperature: temperature above this on any motor is a fault, C.
-    check_every: control steps between reads of the hardware-error and
-      temperature registers (one read per motor each).
-  """
-
-  max_current: float = 1500.0
-  max_temperature: float = 70.0
-  check_every: int = 10
+# Unless the robot's configuration sets others (`RobotConfig.health`).
+_DEFAULT_HEALTH = config_lib.HealthLimits()
 
 
 class HardwareRobot:
@@ -58,7 +45,7 @@ class HardwareRobot:
     client: dynamixel.DynamixelClient,
     joints: tuple[config_lib.Motor, ...],
     auxiliary: tuple[config_lib.Motor, ...] = (),
-    health: HealthLimits = HealthLimits(),
+    health: config_lib.HealthLimits = _DEFAULT_HEALTH,
   ):
     self._client = client
     self._joints = joints
