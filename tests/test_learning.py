@@ -271,7 +271,9 @@ def test_shipped_baselines_reproduce_their_rows(shipped):
   # evaluation, and fails if they succeed significantly less often than
   # the row's (one-sided Fisher exact test at the 1% level).
   row = _shipped_row(*shipped)
-  assert baselines.solved(row)
+  # Shipping reads validation; a seed solved there can read under 0.8 on
+  # its test episodes (a borderline row).
+  assert selection.solved_on_validation(row)
   if shipped in suite.FIXED:
     results = evaluation.evaluate(
       evaluation.EvalConfig(*shipped, 1, policy='baseline', seed=5_000_000)

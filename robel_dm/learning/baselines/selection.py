@@ -182,20 +182,20 @@ def _shipped(groups: list[list[dict]]) -> dict | None:
   order (the first is the recommended agent's): the recommended agent's
   best seed solved safely on validation (highest validation success, then
   score); where it has none, the best such seed of the next agents; where
-  no agent has one, the recommended agent's best seed solved on
-  validation; None if it has none. Which agent to train and
+  no agent has one, the best seed solved on validation, of the first agent
+  in rank order that has one; None if none has. Which agent to train and
   which policy to run on a robot are separate questions: a seed solved
-  safely ships even where another agent solves more seeds."""
+  ships even where another agent solves more seeds, or none."""
 
   def merit(row):
     return validation_success(row), validation_score(row)
 
-  for group in groups:
-    safe = [row for row in group if safely_solved(row)]
-    if safe:
-      return max(safe, key=merit)
-  best = max(groups[0], key=merit)
-  return best if solved_on_validation(best) else None
+  for solved in (safely_solved, solved_on_validation):
+    for group in groups:
+      chosen = [row for row in group if solved(row)]
+      if chosen:
+        return max(chosen, key=merit)
+  return None
 
 
 def _why(algo: str, by_agent: dict[str, list[dict]], ranked: list[str]) -> str:
