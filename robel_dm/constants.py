@@ -17,3 +17,7 @@ OBSERVATION_NOISE_FRACTION = 0.05
 
 # `device_path` of the in-process virtual servo bus (see suite.load).
 VIRTUAL_DEVICE = 'virtual'
+
+# How a missing extra is installed (robel_dm installs from its checkout):
+# INSTALL_EXTRA.format('hardware').
+INSTALL_EXTRA = 'pip install -e ".[{}]" (in the checkout)'

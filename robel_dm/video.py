@@ -13,6 +13,8 @@ import pathlib
 import dm_env
 import numpy as np
 
+from robel_dm import constants
+
 # Frame size, pixels (H.264 wants even sizes).
 DEFAULT_HEIGHT = 480
 DEFAULT_WIDTH = 640
@@ -63,8 +65,7 @@ class VideoWriter:
       import imageio_ffmpeg  # noqa: PLC0415 (the video extra)
     except ImportError as error:
       raise VideoError(
-        'videos need imageio-ffmpeg: pip install -e ".[video]" '
-        '(in the checkout)'
+        'videos need imageio-ffmpeg: ' + constants.INSTALL_EXTRA.format('video')
       ) from error
     self.path = pathlib.Path(path)
     self.frames = 0

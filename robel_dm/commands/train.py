@@ -17,7 +17,7 @@ import sys
 
 from absl import app, flags
 
-from robel_dm import command_help
+from robel_dm import command_help, constants
 from robel_dm.learning import agents
 
 
@@ -183,14 +183,17 @@ def main(argv):
     else:
       _train_in_simulation(config, log)
   except ImportError as error:
-    if 'robel_dm[' in str(error) and 'robel_dm[learn]' not in str(error):
+    named = str(error)
+    if constants.INSTALL_EXTRA.split('{}')[0] in named and (
+      constants.INSTALL_EXTRA.format('learn') not in named
+    ):
       # Another extra, which it names (e.g. the hardware).
       print(f'error: {error}', file=sys.stderr)
       return 2
     print(
       f'error: training needs the learn extra '
       f'({(error.name or "a package").split(".")[0]} is missing): '
-      'pip install -e ".[learn]" (in the checkout)',
+      + constants.INSTALL_EXTRA.format('learn'),
       file=sys.stderr,
     )
     return 2

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from robel_dm import provenance
+from robel_dm import constants, provenance
 
 PANELS = (
   ('success', 'success rate'),
@@ -168,7 +168,7 @@ def plot(
     import matplotlib  # noqa: PLC0415 (only the plot command needs it)
   except ImportError as error:
     raise ModuleNotFoundError(
-      'plots need matplotlib: pip install -e ".[learn]" (in the checkout)',
+      'plots need matplotlib: ' + constants.INSTALL_EXTRA.format('learn'),
       name=error.name,
     ) from error
 

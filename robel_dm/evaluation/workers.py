@@ -13,7 +13,7 @@ import multiprocessing
 import os
 from typing import Any
 
-from robel_dm import policies, suite
+from robel_dm import constants, policies, suite
 from robel_dm.evaluation import episodes
 
 # Each worker process keeps its environments and policies between episodes.
@@ -82,7 +82,7 @@ def ray_session(address: str) -> Iterator[Any]:
     import ray  # noqa: PLC0415
   except ImportError as error:
     raise ValueError(
-      'ray_address needs Ray: pip install -e ".[scale]" (in the checkout)'
+      'ray_address needs Ray: ' + constants.INSTALL_EXTRA.format('scale')
     ) from error
   started = not ray.is_initialized()
   if started:

@@ -30,6 +30,8 @@ import zlib
 
 import numpy as np
 
+from robel_dm import constants
+
 FORMAT = 'robel_dm-recording'
 VERSION = 1
 # Free disk space a recording needs before anything moves, bytes.
@@ -97,7 +99,7 @@ def require_pyarrow():
     import pyarrow.parquet  # noqa: F401, PLC0415
   except ImportError as error:
     raise RecordingError(
-      'recordings need pyarrow: pip install -e ".[data]" (in the checkout)'
+      'recordings need pyarrow: ' + constants.INSTALL_EXTRA.format('data')
     ) from error
   return pyarrow
 

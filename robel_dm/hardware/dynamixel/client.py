@@ -33,6 +33,7 @@ import threading
 
 import numpy as np
 
+from robel_dm import constants
 from robel_dm.hardware import shutdown
 from robel_dm.hardware.dynamixel import control_table as table
 from robel_dm.hardware.dynamixel import port as port_lib
@@ -75,8 +76,8 @@ def _published_progress(fd: int) -> int | None:
 def _require_sdk():
   if sdk is None:
     raise ImportError(
-      'dynamixel_sdk is not installed: pip install -e ".[hardware]" '
-      '(in the checkout)'
+      'dynamixel_sdk is not installed: '
+      + constants.INSTALL_EXTRA.format('hardware')
     )
 
 

@@ -21,6 +21,7 @@ import os
 import termios
 from typing import NoReturn
 
+from robel_dm import constants
 from robel_dm.hardware.dynamixel.errors import DynamixelError
 
 # What the OS and pyserial raise when a port fails (pyserial's
@@ -110,7 +111,7 @@ def _serial():
   except ImportError as error:
     raise ImportError(
       f'the serial port needs pyserial ({error}): '
-      'pip install -e ".[hardware]" (in the checkout)'
+      + constants.INSTALL_EXTRA.format('hardware')
     ) from error
   return serial
 
