@@ -488,14 +488,15 @@ class DKittyScriptedReset:
       self._flatten(robot, clock)
       if upright_and_height(self._torso)[0] >= 0:
         return
-      for groups, seconds in self._roll_poses():
-        self._pose(robot, clock, groups, seconds)
+      self._poses(robot, clock, self._roll_poses())
 
   def _tuck(self, robot, clock) -> None:
     self._flatten(robot, clock)
-    for groups, seconds in self._tuck_poses():
-      self._pose(robot, clock, groups, seconds)
+    self._poses(robot, clock, self._tuck_poses())
 
   def _stand_up(self, robot, clock) -> None:
-    for groups, seconds in self._stand_poses():
+    self._poses(robot, clock, self._stand_poses())
+
+  def _poses(self, robot, clock, poses: list[tuple[dict, float]]) -> None:
+    for groups, seconds in poses:
       self._pose(robot, clock, groups, seconds)
