@@ -76,6 +76,34 @@ def test_stuck_finger_retries_disentangles_then_fails_naming_it(monkeypatch):
     env.close()
 
 
+def test_claw_reset_pose_beyond_the_configured_limits_starts_at_them(caplog):
+  # Turn Fixed's reset pose bends the middle joints to -pi/3; this owner
+  # allows FFJ11 no further than -0.8 rad. The reset says so and moves the
+  # finger to -0.8 (the scripted reset used to retry, disentangle and fail
+  # blaming a stuck finger).
+  config = dataclasses.replace(
+    config_lib.default('dclaw'), limits={'FFJ11': (-0.8, 0.0)}
+  )
+  env = suite.load(
+    'dclaw',
+    'turn_fixed',
+    seed=0,
+    robot=suite.RobotOptions('virtual', robot_config=config),
+  )
+  try:
+    with caplog.at_level('WARNING'):
+      env.reset()
+    assert (
+      'reset: joint FFJ11 starts at -0.800 rad, the limit of its goals, not '
+      'at the -1.047 rad the task drew' in caplog.text
+    )
+    assert 'reset attempt' not in caplog.text
+    joints = env.physics.bind(env.task.robot.joints).qpos
+    assert abs(joints[1] + 0.8) < np.deg2rad(5)
+  finally:
+    env.close()
+
+
 @pytest.mark.slow
 def test_manual_reset_releases_the_motors_while_the_person_works():
   seen = []

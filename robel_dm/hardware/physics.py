@@ -210,7 +210,10 @@ class HardwarePhysics(mjcf.Physics):
       # E.g. the guide motor showing the goal (set by the task).
       auxiliary_goals.update(self.auxiliary_goals)
       self._reset(
-        robot, self._clock, desired[: self._n_joints], auxiliary_goals
+        robot,
+        self._clock,
+        robot.reset_goals(desired[: self._n_joints]),
+        auxiliary_goals,
       )
       # Resets release the auxiliary motors; those still commanded (a guide
       # showing the goal) are held.

@@ -42,7 +42,9 @@ _MIN_CLAW_RESET_TIME = 1.0  # s, from relaxing the fingers to moving them.
 _VALVE_MOVE_TIMEOUT = 10.0  # s
 _MAX_CLAW_ATTEMPTS = 4  # The first try and ROBEL's 3 retries.
 _DISENTANGLE_STEP = 0.75  # s
-_DISENTANGLE_TOP_POSE = np.pi / 4  # rad, top joints while disentangling.
+# rad, top joints while disentangling: beyond their range (+-0.48 rad), so
+# the goal stops at its end (27.5 degrees), as ROBEL's clip to the range does.
+_DISENTANGLE_TOP_POSE = np.pi / 4
 
 # ROBEL's "manual-auto" D'Kitty reset: poll the tracker (s), require this
 # many consecutive good checks, then wait (s); robel_dm gives up after the

@@ -9,6 +9,7 @@ checks that they still hold their torque: one released by anyone else
 control step instead of being driven on limp.
 """
 
+import logging
 import os
 import time
 
@@ -207,6 +208,26 @@ class HardwareRobot:
     n = len(self._joints)
     motor_angles = (goals - self._offset[:n]) / self._scale[:n]
     self._client.write_goal_positions(motor_angles, self._joint_ids)
+    return goals
+
+  def reset_goals(self, pose) -> np.ndarray:
+    """The episode's initial joint angles within the goal limits, rad.
+
+    A task draws its initial pose within the action ranges; a configuration's
+    narrower `limits` can exclude it. Such joints start the episode at their
+    limit, and a warning names each before anything moves (the observation
+    reads where the robot is).
+    """
+    pose = np.asarray(pose, dtype=float)
+    goals = np.clip(pose, *self._limits)
+    for i in np.flatnonzero(goals != pose):
+      logging.warning(
+        'reset: joint %s starts at %+.3f rad, the limit of its goals, not at '
+        'the %+.3f rad the task drew',
+        self._joints[i].name,
+        goals[i],
+        pose[i],
+      )
     return goals
 
   def check_configured_limits(self, motor_ids, joint_angles) -> None:
