@@ -996,7 +996,7 @@ def test_the_reason_says_why_an_agent_with_fewer_seeds_ranks_below():
     'sac_lr3e4': [_row('sac_lr3e4', s, 0.0, 0.0) for s in range(2)],
   }
   assert selection.choose(by_agent).why.endswith(
-    'ranked above `sac_lr3e4`, which has 2 of its 3 planned seeds recorded '
+    'ranked above `sac_lr3e4`, which has 2 of 3 seeds recorded '
     '(agents with every seed recorded rank first)'
   )
 
@@ -1012,7 +1012,7 @@ def test_the_reason_names_the_readings_where_they_decide_too():
   }
   assert selection.choose(by_agent).why == (
     'solves 2 of 3 seeds on validation; next best `sac_curriculum` 0 of 2 '
-    '(2 of its 3 planned seeds recorded; its missing seeds could not put '
+    '(2 of 3 seeds recorded; its missing seeds could not put '
     'it first)'
   )
   # A third agent whose two missing seeds could still put it first.

@@ -274,7 +274,7 @@ def _why_ahead(
   if incomplete and _merit(group, seeds)[1:] <= _merit(runner_up, seeds)[1:]:
     return (
       f'{text}; ranked above `{ranked[1]}`, which has {len(runner_up)} of '
-      f'its {seeds} planned seeds recorded (agents with every '
+      f'{seeds} seeds recorded (agents with every '
       'seed recorded rank first)'
     )
   recorded = _seeds_missing(runner_up, group) if incomplete else ''
@@ -294,7 +294,7 @@ def _seeds_missing(runner_up: list[dict], group: list[dict]) -> str:
   """How many seeds the runner-up has, and where its missing seeds could
   not put it above `group` (`_could_rank_above`), that they could not."""
   seeds = len(baselines.PLAN['seeds'])
-  text = f' ({len(runner_up)} of its {seeds} planned seeds recorded'
+  text = f' ({len(runner_up)} of {seeds} seeds recorded'
   if not _could_rank_above(runner_up, group):
     text += '; its missing seeds could not put it first'
   return text + ')'
