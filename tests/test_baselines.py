@@ -990,6 +990,21 @@ def test_the_reason_names_planned_agents_with_no_record():
   )
 
 
+def test_a_tie_on_validation_is_broken_without_the_test_reading():
+  # Equal on validation; `b` reached 80% in training sooner, but its test
+  # reads low. The test must not decide: `b` is recommended.
+  by_agent = {
+    'a': [_row('a', s, 0.9, 0.9, steps=100_000) for s in range(3)],
+    'b': [_row('b', s, 0.9, 0.5, steps=50_000) for s in range(3)],
+  }
+  choice = selection.choose(by_agent)
+  assert choice.algo == 'b'
+  assert choice.why.endswith(
+    'ahead on env steps to 80% (median over seeds solved on validation): '
+    '50,000 against 100,000'
+  )
+
+
 def test_the_reason_says_why_an_agent_with_fewer_seeds_ranks_below():
   by_agent = {
     'sac': [_row('sac', s, 0.0, 0.0) for s in range(3)],
