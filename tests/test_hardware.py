@@ -6,6 +6,7 @@ Every environment here is
 whose motors a MuJoCo simulation drives in simulated time.
 """
 
+import dataclasses
 import json
 import math
 import pathlib
@@ -303,6 +304,10 @@ def test_overload_stops_the_episode_naming_the_motor():
       for _ in range(20):  # Health is checked every few steps.
         env.step(np.zeros(9))
     assert not any(_torque(bus).values())
+    errors = dict(
+      zip(env.robot.motor_ids, env.robot.hardware_errors, strict=True)
+    )
+    assert errors[21] == 0x20 and not any(errors[i] for i in errors if i != 21)
   finally:
     env.close()
 
@@ -465,6 +470,44 @@ def test_robot_configurations_load_and_reject_mistakes(tmp_path):
     config_lib.load(tmp_path / 'missing.json')
 
 
+def _with_first_joint(data: dict, **fields) -> dict:
+  joints = [dict(data['joints'][0], **fields), *data['joints'][1:]]
+  return data | {'joints': joints}
+
+
+def test_every_malformed_configuration_entry_is_named(tmp_path):
+  # A typo or a wrong type must not fall back to a default (a misspelt
+  # `limits` would leave the robot its full range) nor fail as a TypeError.
+  path = tmp_path / 'robot.json'
+  shipped = pathlib.Path(config_lib.__file__).parent / 'configs' / 'dclaw.json'
+  data = json.loads(shipped.read_text())
+  for bad, message in (
+    (data | {'limit': {}}, r"unknown fields \['limit'\]"),
+    (data | {'heath': {}}, r"unknown fields \['heath'\]"),
+    (data | {'robot': 'banana'}, 'robot must be one of'),
+    (data | {'limits': {'FFJ10': 0.3}}, 'limits of FFJ10 must be'),
+    (data | {'limits': {'FFJ10': ['a', 'b']}}, 'limits of FFJ10 must be'),
+    (data | {'limits': [1]}, 'limits must be an object'),
+    (data | {'groups': {'top': 5}}, "group 'top' must be a list"),
+    (data | {'baud_rate': '1000000'}, 'is not a Dynamixel rate'),
+    (data | {'joints': {}}, 'joints must be a list'),
+    (_with_first_joint(data, offset_pi='x'), r'joints\[0\] \(FFJ10\): offset'),
+    (_with_first_joint(data, scale=True), 'scale must be 1 or -1'),
+    (_with_first_joint(data, id=True), 'id must be an integer'),
+    (_with_first_joint(data, optional='false'), 'optional must be true or'),
+    (_with_first_joint(data, required_by='turn'), 'required_by must be a list'),
+    (
+      _with_first_joint(data, calibration=1),
+      r"unknown fields \['calibration'\]",
+    ),
+  ):
+    path.write_text(json.dumps(bad))
+    with pytest.raises(config_lib.ConfigError, match=message):
+      config_lib.load(path)
+  path.write_text(json.dumps(_with_first_joint(data, offset_pi=0.5)))
+  assert config_lib.load(path).joints[0].offset == pytest.approx(np.pi / 2)
+
+
 def test_a_configuration_sets_the_health_limits_and_checks_them(tmp_path):
   assert config_lib.default('dclaw').health == config_lib.HealthLimits()
   path = tmp_path / 'robot.json'
@@ -480,7 +523,7 @@ def test_a_configuration_sets_the_health_limits_and_checks_them(tmp_path):
     ({'max_current': -1}, 'health max_current must be a positive number'),
     ({'max_temperature': 'hot'}, 'health max_temperature must be a positive'),
     ({'max_current': True}, 'health max_current must be a positive number'),
-    ({'check_every': 5}, "health has unknown fields \\['check_every'\\]"),
+    ({'check_every': 5}, "health: unknown fields \\['check_every'\\]"),
     ([1500], 'health must be an object'),
   ):
     path.write_text(json.dumps(data | {'health': bad}))
@@ -499,6 +542,17 @@ def test_unknown_device_configuration_mismatch_is_rejected(tmp_path):
       }
     )
   )
+  with pytest.raises(
+    config_lib.ConfigError, match='a dkitty configuration, for a dclaw task'
+  ):
+    hardware_env.make_environment(
+      suite.registry.DCLAW['pose_fixed'](),
+      domain='dclaw',
+      robot=suite.RobotOptions('virtual', robot_config=str(path)),
+    )
+  # Named a D'Claw, wired as a D'Kitty.
+  data = json.loads(path.read_text()) | {'robot': 'dclaw'}
+  path.write_text(json.dumps(data))
   with pytest.raises(config_lib.ConfigError, match='do not match'):
     hardware_env.make_environment(
       suite.registry.DCLAW['pose_fixed'](),
@@ -543,3 +597,20 @@ def test_evaluation_runs_on_the_virtual_bus():
   assert results['device_path'] == 'virtual'
   assert results['success_rate'] == 1.0
   assert [record['steps'] for record in results['records']] == [80, 80]
+
+
+def test_configured_limits_outside_the_action_range_name_the_joint():
+  config = dataclasses.replace(
+    config_lib.default('dclaw'),
+    limits={'FFJ10': (0.6, 0.9), 'MFJ21': (-0.5, 0.5)},
+  )
+  with pytest.raises(
+    config_lib.ConfigError,
+    match=r'configured limits of FFJ10 \[0\.6, 0\.9\] lie outside its '
+    r'action range \[-0\.480, \+0\.480\] rad',
+  ):
+    suite.load(
+      'dclaw',
+      'pose_fixed',
+      robot=suite.RobotOptions('virtual', robot_config=config),
+    )

@@ -286,7 +286,7 @@ def test_dkitty_stand_up_beyond_the_configured_limits_is_refused_unmoved():
     assert not any(_torque(env.virtual_bus).values())
     assert env.virtual_bus.goal_positions() == goals
     with pytest.raises(ValueError, match='outside its configured limits'):
-      env.robot.write_unlimited_goals([11], [1.0])
+      env.robot.write_reset_goals([11], [1.0])
     assert env.virtual_bus.goal_positions() == goals
   finally:
     env.close()

@@ -79,3 +79,15 @@ def test_the_tracker_flag_reaches_a_natnet_stream_over_loopback():
   assert results['episodes'] == 1 and sent[0] > 10
   # The tracked torso never moved: the robot counted as standing still.
   assert np.isfinite(results['mean_return'])
+
+
+def test_a_tracker_on_a_robot_without_a_free_torso_is_refused_unopened():
+  # A tracker spec that nothing listens on: refused before it is opened.
+  with pytest.raises(ValueError, match='has no free torso: a tracker'):
+    suite.load(
+      'dclaw',
+      'pose_fixed',
+      robot=suite.RobotOptions(
+        'virtual', tracker='natnet:127.0.0.1,rigid_body=1'
+      ),
+    )

@@ -9,8 +9,9 @@ Calibration maps a motor's own angle (ticks * 2 pi / 4096, rad) to the
 joint angle of the model: q = scale * motor_angle + offset; velocities are
 scaled likewise without the offset.
 
-File format (JSON object):
+File format (JSON object; unknown fields are refused):
   robot: 'dclaw' or 'dkitty'.
+  description (optional): text for people.
   baud_rate: bits per second (default 1000000).
   joints: the actuated joints in action order, each
       {"name": str, "id": int, "scale": +1 or -1,
@@ -88,6 +89,14 @@ class HealthLimits:
 
 # The health limits a configuration file may set.
 _HEALTH_FIELDS = ('max_current', 'max_temperature')
+# The fields of a configuration file and of each motor in it.
+_FIELDS = (
+  'robot', 'description', 'baud_rate', 'joints', 'auxiliary', 'groups',
+  'limits', 'health',
+)  # fmt: skip
+_MOTOR_FIELDS = (
+  'name', 'id', 'scale', 'offset', 'offset_pi', 'optional', 'required_by'
+)  # fmt: skip
 
 
 @dataclasses.dataclass(frozen=True)
@@ -136,33 +145,72 @@ def _require(data: dict, key: str, where: str):
   return data[key]
 
 
+def _is_number(value: Any) -> bool:
+  """A finite JSON number (not a boolean, which Python counts as one)."""
+  return (
+    isinstance(value, (int, float))
+    and not isinstance(value, bool)
+    and math.isfinite(value)
+  )
+
+
+def _unknown(data: dict, known: tuple[str, ...], where: str) -> None:
+  unknown = sorted(set(data) - set(known))
+  if unknown:
+    raise ConfigError(
+      f'{where}: unknown fields {unknown}; known: {list(known)}'
+    )
+
+
 def _motor(data: Any, where: str) -> Motor:
   if not isinstance(data, dict):
     raise ConfigError(f'{where}: expected an object, got {data!r}')
   name = _require(data, 'name', where)
+  if not isinstance(name, str):
+    raise ConfigError(f'{where}: name must be a string, got {name!r}')
+  where = f'{where} ({name})'
+  _unknown(data, _MOTOR_FIELDS, where)
   motor_id = _require(data, 'id', where)
-  if not isinstance(motor_id, int) or not 0 <= motor_id <= _MAX_ID:
-    raise ConfigError(f'{where} ({name}): id must be an integer 0..252')
+  if (
+    isinstance(motor_id, bool)
+    or not isinstance(motor_id, int)
+    or not 0 <= motor_id <= _MAX_ID
+  ):
+    raise ConfigError(
+      f'{where}: id must be an integer 0..252, got {motor_id!r}'
+    )
   scale = data.get('scale', 1)
-  if scale not in (1, -1, 1.0, -1.0):
-    raise ConfigError(f'{where} ({name}): scale must be 1 or -1, got {scale}')
+  if not _is_number(scale) or scale not in (1, -1):
+    raise ConfigError(f'{where}: scale must be 1 or -1, got {scale!r}')
   if 'offset' in data and 'offset_pi' in data:
-    raise ConfigError(f'{where} ({name}): give "offset" or "offset_pi"')
-  offset = data.get('offset', math.pi * data.get('offset_pi', 0.0))
-  if not isinstance(offset, (int, float)) or not math.isfinite(offset):
-    raise ConfigError(f'{where} ({name}): offset must be a finite number')
-  unknown = set(data) - {
-    'name', 'id', 'scale', 'offset', 'offset_pi', 'optional', 'required_by'
-  }  # fmt: skip
-  if unknown:
-    raise ConfigError(f'{where} ({name}): unknown fields {sorted(unknown)}')
+    raise ConfigError(f'{where}: give "offset" or "offset_pi"')
+  offset = data.get('offset', data.get('offset_pi', 0.0))
+  if not _is_number(offset):
+    raise ConfigError(
+      f'{where}: offset must be a finite number, got {offset!r}'
+    )
+  if 'offset_pi' in data:
+    offset = math.pi * offset
+  optional = data.get('optional', False)
+  if not isinstance(optional, bool):
+    raise ConfigError(
+      f'{where}: optional must be true or false, got {optional!r}'
+    )
+  required_by = data.get('required_by', [])
+  if not isinstance(required_by, list) or not all(
+    isinstance(family, str) for family in required_by
+  ):
+    raise ConfigError(
+      f'{where}: required_by must be a list of task families, got '
+      f'{required_by!r}'
+    )
   return Motor(
-    name=str(name),
+    name=name,
     id=motor_id,
     scale=float(scale),
     offset=float(offset),
-    optional=bool(data.get('optional', False)),
-    required_by=tuple(data.get('required_by', ())),
+    optional=optional,
+    required_by=tuple(required_by),
   )
 
 
@@ -174,72 +222,99 @@ def from_dict(data: dict, source: str = '<memory>') -> RobotConfig:
   """
   if not isinstance(data, dict):
     raise ConfigError(f'{source}: a configuration is a JSON object')
+  _unknown(data, _FIELDS, source)
   robot = _require(data, 'robot', source)
+  if robot not in robots.ROBOTS:
+    raise ConfigError(
+      f'{source}: robot must be one of {sorted(robots.ROBOTS)}, got {robot!r}'
+    )
   joints = tuple(
     _motor(entry, f'{source}: joints[{i}]')
-    for i, entry in enumerate(_require(data, 'joints', source))
+    for i, entry in enumerate(_list(data, 'joints', source, required=True))
   )
   auxiliary = tuple(
     _motor(entry, f'{source}: auxiliary[{i}]')
-    for i, entry in enumerate(data.get('auxiliary', ()))
+    for i, entry in enumerate(_list(data, 'auxiliary', source))
   )
   ids = [motor.id for motor in joints + auxiliary]
   duplicates = sorted({i for i in ids if ids.count(i) > 1})
   if duplicates:
     raise ConfigError(f'{source}: motor IDs used twice: {duplicates}')
-  groups = {}
-  for name, members in data.get('groups', {}).items():
-    unknown = sorted(set(members) - set(ids))
-    if unknown:
-      raise ConfigError(f'{source}: group {name!r} has unknown IDs {unknown}')
-    groups[name] = tuple(members)
-  limits = {}
-  joint_names = {motor.name for motor in joints}
-  for name, bounds in data.get('limits', {}).items():
-    if name not in joint_names:
-      raise ConfigError(f'{source}: limits for unknown joint {name!r}')
-    if (
-      len(bounds) != 2
-      or not all(math.isfinite(b) for b in bounds)
-      or bounds[0] >= bounds[1]
-    ):
-      raise ConfigError(f'{source}: limits of {name} must be [low, high]')
-    limits[name] = (float(bounds[0]), float(bounds[1]))
-  baud_rate = int(data.get('baud_rate', control_table.DEFAULT_BAUD_RATE))
-  if baud_rate not in control_table.BAUD_RATES.values():
+  baud_rate = data.get('baud_rate', control_table.DEFAULT_BAUD_RATE)
+  if baud_rate not in control_table.BAUD_RATES.values() or isinstance(
+    baud_rate, bool
+  ):
     raise ConfigError(
-      f'{source}: baud_rate {baud_rate} is not a Dynamixel rate '
+      f'{source}: baud_rate {baud_rate!r} is not a Dynamixel rate '
       f'{sorted(control_table.BAUD_RATES.values())}'
     )
   return RobotConfig(
-    robot=str(robot),
+    robot=robot,
     joints=joints,
     auxiliary=auxiliary,
-    groups=groups,
-    limits=limits,
-    baud_rate=baud_rate,
+    groups=_groups(data.get('groups', {}), ids, source),
+    limits=_limits(data.get('limits', {}), joints, source),
+    baud_rate=int(baud_rate),
     health=_health(data.get('health', {}), source),
     source=source,
   )
+
+
+def _list(data: dict, key: str, source: str, required: bool = False) -> list:
+  """The list under `key` (empty if absent and not `required`)."""
+  value = _require(data, key, source) if required else data.get(key, [])
+  if not isinstance(value, list):
+    raise ConfigError(f'{source}: {key} must be a list, got {value!r}')
+  return value
+
+
+def _groups(data: Any, ids: list[int], source: str) -> dict:
+  """The `groups` entry: name -> motor IDs, each a configured motor."""
+  if not isinstance(data, dict):
+    raise ConfigError(f'{source}: groups must be an object, got {data!r}')
+  groups = {}
+  for name, members in data.items():
+    if not isinstance(members, list):
+      raise ConfigError(
+        f'{source}: group {name!r} must be a list of motor IDs, got {members!r}'
+      )
+    unknown = [i for i in members if i not in ids or isinstance(i, bool)]
+    if unknown:
+      raise ConfigError(f'{source}: group {name!r} has unknown IDs {unknown}')
+    groups[name] = tuple(members)
+  return groups
+
+
+def _limits(data: Any, joints: tuple[Motor, ...], source: str) -> dict:
+  """The `limits` entry: joint name -> (low, high), rad."""
+  if not isinstance(data, dict):
+    raise ConfigError(f'{source}: limits must be an object, got {data!r}')
+  limits = {}
+  joint_names = {motor.name for motor in joints}
+  for name, bounds in data.items():
+    if name not in joint_names:
+      raise ConfigError(f'{source}: limits for unknown joint {name!r}')
+    if (
+      not isinstance(bounds, list)
+      or len(bounds) != 2
+      or not all(map(_is_number, bounds))
+      or bounds[0] >= bounds[1]
+    ):
+      raise ConfigError(
+        f'{source}: limits of {name} must be [low, high] in rad, low < '
+        f'high, got {bounds!r}'
+      )
+    limits[name] = (float(bounds[0]), float(bounds[1]))
+  return limits
 
 
 def _health(data: Any, source: str) -> HealthLimits:
   """The `health` entry of a configuration as HealthLimits."""
   if not isinstance(data, dict):
     raise ConfigError(f'{source}: health must be an object {_HEALTH_FIELDS}')
-  unknown = sorted(set(data) - set(_HEALTH_FIELDS))
-  if unknown:
-    raise ConfigError(
-      f'{source}: health has unknown fields {unknown}; known: '
-      f'{list(_HEALTH_FIELDS)}'
-    )
+  _unknown(data, _HEALTH_FIELDS, f'{source}: health')
   for name, value in data.items():
-    if (
-      isinstance(value, bool)
-      or not isinstance(value, (int, float))
-      or not math.isfinite(value)
-      or value <= 0
-    ):
+    if not _is_number(value) or value <= 0:
       raise ConfigError(
         f'{source}: health {name} must be a positive number, got {value!r}'
       )

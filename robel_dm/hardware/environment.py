@@ -19,8 +19,8 @@ import weakref
 
 from dm_control import composer, mjcf
 
-from robel_dm import constants, robots
 from robel_dm import environment as environment_lib
+from robel_dm import robots
 from robel_dm.hardware import clock as clock_lib
 from robel_dm.hardware import config as config_lib
 from robel_dm.hardware import connection as connection_lib
@@ -31,8 +31,6 @@ from robel_dm.hardware import robot as robot_lib
 from robel_dm.hardware import robot_io as robot_io_lib
 from robel_dm.hardware.dynamixel import client as dynamixel
 from robel_dm.hardware.tracking import spec as tracker_spec
-
-VIRTUAL_DEVICE = constants.VIRTUAL_DEVICE
 
 # Builds the simulated environment a virtual bus's motors follow.
 SceneFactory = Callable[[], composer.Environment]
@@ -257,6 +255,11 @@ def _resolve_setup(
     robot_config = config_lib.load(robot_config)
   robot_config = robot_config or config_lib.default(domain)
   task_label = f'{domain} task {type(task).__name__}'
+  if robot_config.robot != domain:
+    raise config_lib.ConfigError(
+      f'{robot_config.source}: a {robot_config.robot} configuration, for a '
+      f'{domain} task'
+    )
   if [m.name for m in robot_config.joints] != [
     j.name for j in task.robot.joints
   ]:
@@ -267,14 +270,23 @@ def _resolve_setup(
     task, robot_config, robot.guide, task_label
   )
   free_floating = task.root_joint is not None
-  virtual = robot.device_path == VIRTUAL_DEVICE
+  virtual = robot.virtual
   if virtual and scene_factory is None:
     raise ValueError(
       "device_path='virtual' needs a scene_factory that builds the simulated "
       'robot (suite.load passes one)'
     )
   # A tracker spec was checked when `robot` was built: it opens later.
+  if torso_source is not None and robot.tracker is not None:
+    raise ValueError(
+      'give the torso pose by torso_source or by a tracker, not both'
+    )
   has_torso = torso_source is not None or robot.tracker is not None
+  if has_torso and not free_floating:
+    raise ValueError(
+      f'the {task_label} has no free torso: a tracker or torso_source has '
+      'nothing to track'
+    )
   if free_floating and not virtual and not has_torso:
     raise ValueError(
       f'the {task_label} needs the torso pose (upright, heading, '

@@ -4,7 +4,11 @@ A reset procedure is called with the robot, the clock and the initial state
 the task chose (joint angles in action order, and goals for auxiliary motors
 such as the D'Claw's valve); it must leave the actuated joints torqued at
 that state and the auxiliary motors released. Every procedure is bounded in
-time and attempts and raises `ResetError`, naming the motors, when it fails.
+time and attempts. A procedure raises `ResetError` when it cannot go on (a
+finger or the valve that does not get there, a D'Kitty that does not stand
+up), naming the motors where motors are at fault; a plain move that ends
+short of the pose logs the motors and how far they are off, and the episode
+starts where they stopped, as in ROBEL.
 
 * `MoveReset` ('move'): one bounded blocking move (ROBEL's plain reset).
 * `DClawScriptedReset` ('scripted'): ROBEL's D'Claw reset
@@ -46,9 +50,9 @@ _DISENTANGLE_STEP = 0.75  # s
 # the goal stops at its end (27.5 degrees), as ROBEL's clip to the range does.
 _DISENTANGLE_TOP_POSE = np.pi / 4
 
-# ROBEL's "manual-auto" D'Kitty reset: poll the tracker (s), require this
-# many consecutive good checks, then wait (s); robel_dm gives up after the
-# timeout (s).
+# ROBEL's "manual-auto" D'Kitty reset: poll the tracker (s), require more
+# than this many consecutive good checks, then wait (s); robel_dm gives up
+# after the timeout (s).
 _MANUAL_POLL_INTERVAL = 0.1
 _MANUAL_GOOD_CHECKS = 5
 _MANUAL_SETTLE = 1.0
@@ -56,7 +60,8 @@ _MANUAL_TIMEOUT = 120.0
 
 
 class ResetError(RuntimeError):
-  """A reset failed; `motor_ids` names the motors that did not get there."""
+  """A reset failed; `motor_ids` names the motors that did not get there
+  (empty where no motor is at fault, e.g. a D'Kitty that did not stand)."""
 
   def __init__(self, message: str, motor_ids=()):
     super().__init__(message)
@@ -170,7 +175,13 @@ class DClawScriptedReset:
         if error[robot.auxiliary_index(name)] > GOOD_RESET_TOLERANCE
       ]
       if stuck:
-        raise ResetError(f'reset: the {stuck} motor did not reach its angle')
+        ids = [robot.auxiliary_id(name) for name in stuck]
+        raise ResetError(
+          f'reset: the {", ".join(stuck)} motor (ID '
+          f'{", ".join(map(str, ids))}) did not reach its angle within 5 '
+          'degrees',
+          ids,
+        )
     clock.sleep_until(start + _MIN_CLAW_RESET_TIME)
     # 3-4. Move the claw; disentangle and retry while a finger is off.
     claw = robot.joint_ids
@@ -423,7 +434,7 @@ class DKittyScriptedReset:
   def _pose(self, robot, clock, groups: dict, seconds: float) -> None:
     """Commands joint angles to groups of motors and waits (bounded)."""
     for ids, angles in groups.items():
-      robot.write_unlimited_goals(ids, angles)
+      robot.write_reset_goals(ids, angles)
     deadline = clock.now() + seconds
     previous = None
     while clock.now() < deadline:

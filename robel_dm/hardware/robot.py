@@ -35,8 +35,9 @@ _DEFAULT_HEALTH = config_lib.HealthLimits()
 class HardwareRobot:
   """The motors that drive a model's joints, in joint units.
 
-  `motors` are the actuated joints in action order, then any auxiliary
-  motors the task reads (e.g. the D'Claw's valve encoder). Reads convert
+  `joints` are the actuated joints in action order, `auxiliary` any other
+  motors the task reads (e.g. the D'Claw's valve encoder); `positions` and
+  its siblings hold the joints, then the auxiliary motors. Reads convert
   motor angles to joint angles with each motor's calibration; goals are
   clamped to the joints' limits before they are converted and sent.
   """
@@ -84,11 +85,6 @@ class HardwareRobot:
     return self._client
 
   @property
-  def owner(self) -> int:
-    """The process ID of the process that opened the robot."""
-    return self._owner
-
-  @property
   def in_owner_process(self) -> bool:
     """Whether this process opened the robot (False in a forked child)."""
     return os.getpid() == self._owner
@@ -123,15 +119,18 @@ class HardwareRobot:
       configured: joint name -> (low, high) from the robot configuration;
         they narrow the limits further.
     """
-    low, high = np.array(low, float), np.array(high, float)
+    low_range, high_range = np.array(low, float), np.array(high, float)
+    low, high = low_range.copy(), high_range.copy()
     self._configured = dict(configured or {})
     for i, motor in enumerate(self._joints):
       if configured and motor.name in configured:
         low[i] = max(low[i], configured[motor.name][0])
         high[i] = min(high[i], configured[motor.name][1])
-    if np.any(low > high):
-      raise ValueError(
-        f'configured joint limits outside the action range: {configured}'
+    for i in np.flatnonzero(low > high):
+      name = self._joints[i].name
+      raise config_lib.ConfigError(
+        f'configured limits of {name} {list(configured[name])} lie outside '
+        f'its action range [{low_range[i]:+.3f}, {high_range[i]:+.3f}] rad'
       )
     self._limits = (low, high)
 
@@ -178,13 +177,22 @@ class HardwareRobot:
     if not lost:
       return
     # An overload (or other shutdown) error cuts a motor's torque: name it.
-    self._client.raise_on_hardware_errors(lost)
+    self._raise_on_hardware_errors(lost)
     raise dynamixel.RobotReleasedError(
       f'motors {lost} lost their torque: released by another process or '
       'program on the bus, or their power failed; the robot is released, '
       'and reset() brings it back',
       lost,
     )
+
+  def _raise_on_hardware_errors(self, motor_ids=None) -> None:
+    """Raises MotorFaultError if any of `motor_ids` (all by default) reports
+    a hardware error, its bits kept in `hardware_errors`."""
+    try:
+      self._client.raise_on_hardware_errors(motor_ids)
+    except dynamixel.MotorFaultError as fault:
+      self.hardware_errors[:] = [fault.errors.get(i, 0) for i in self.motor_ids]
+      raise
 
   def _mark_torque(self, motor_ids, enabled: bool) -> None:
     index = {motor_id: i for i, motor_id in enumerate(self.motor_ids)}
@@ -243,7 +251,7 @@ class HardwareRobot:
           f'outside its configured limits [{low:+.3f}, {high:+.3f}]'
         )
 
-  def write_unlimited_goals(self, motor_ids, joint_angles) -> None:
+  def write_reset_goals(self, motor_ids, joint_angles) -> None:
     """Goals for some joints beyond the action ranges (resets), within the
     configuration's limits.
 
@@ -305,7 +313,9 @@ class HardwareRobot:
   def check_health(self, force: bool = False) -> None:
     """Every `check_every` calls (or now), reads the hardware-error bits,
     input voltage and temperature into `hardware_errors`, `voltages` and
-    `temperatures`.
+    `temperatures`. Error bits stop the robot, so `hardware_errors` is 0
+    after every check that returns, and holds the bits after one that
+    raised.
 
     Raises:
       dynamixel.MotorFaultError: on a hardware error or over-temperature.
@@ -317,7 +327,7 @@ class HardwareRobot:
       return
     self._steps_since_check = 0
     # A motor with an error stops the robot here; otherwise every bit is 0.
-    self._client.raise_on_hardware_errors()
+    self._raise_on_hardware_errors()
     self.hardware_errors[:] = 0
     block = self._client.sync_read_register(_HEALTH_BLOCK)
     ids = self.motor_ids

@@ -104,12 +104,6 @@ def _own_releasers() -> list[Callable[[], None]]:
     return [release for owner, release in _LIVE.values() if owner == pid]
 
 
-def registered() -> int:
-  """How many releasers this process registered (for tests and
-  diagnostics); those a forked child inherited do not count."""
-  return len(_own_releasers())
-
-
 def exit_signal() -> signal.Signals | None:
   """The signal on which the robots were released, or None."""
   return _EXIT_SIGNAL[0] if _EXIT_SIGNAL else None

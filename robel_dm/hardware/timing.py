@@ -1,11 +1,13 @@
 """How well the hardware control loop keeps its period.
 
-Every control step waits for its tick, then exchanges with the motors.
-`ControlTiming` keeps, per step, the control period actually achieved (the
-time between two successive exchanges) and how late the step came to its
-tick. A step is *late* when the code before it (the policy, a learner
-competing for the CPU, a slow bus) ran past its tick by more than
-`LATE_TOLERANCE`: such a step is logged and counted, never hidden.
+Every control step sends its goals, waits for its tick, then reads the
+motors. `ControlTiming` keeps, per step, the control period actually
+achieved (the time between two successive wake-ups at a tick) and how late
+the step came to its tick (counted after its goals were sent, so a slow
+write shows as lateness). A step is *late* when the code before it (the
+policy, a learner competing for the CPU, a slow bus) ran past its tick by
+more than `LATE_TOLERANCE`: such a step is logged and counted, never
+hidden.
 """
 
 import array
