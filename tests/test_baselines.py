@@ -633,6 +633,13 @@ def test_a_recorded_run_chosen_by_name_says_so_and_force_makes_it_again(
   assert cli.main(['train', '--force']) == 2  # --force needs --only.
 
 
+def test_queue_flags_are_refused_with_a_ray_cluster(capsys):
+  # A cluster would ignore them; nothing starts.
+  for flags in (['--force', '--only=x'], ['--hours=1'], ['--queues=2']):
+    assert cli.main(['train', '--ray_address=local', *flags]) == 2
+    assert 'not with --ray_address' in capsys.readouterr().err
+
+
 @pytest.mark.slow
 def test_a_recorded_run_being_made_again_goes_on_without_force(sandbox, capsys):
   # A remake (--force) cut short resumes like any run: without --force,
@@ -1052,7 +1059,7 @@ def test_a_tie_break_names_the_runner_up_and_both_readings():
   by_agent['sac'][1] = _row('sac', 1, 0.9, 0.9, steps=9000)
   assert selection.choose(by_agent).why.endswith(
     'on seeds solved and mean validation success, ahead on env steps to '
-    '80% (median over seeds): 1,000 against 9,000'
+    '80% (median over seeds solved on validation): 1,000 against 9,000'
   )
 
 

@@ -47,6 +47,21 @@ def main(argv: list[str] | None = None) -> int:
     elif args.command == 'report':
       report.write()
     elif args.ray_address:
+      ignored = [
+        flag
+        for flag, given in (
+          ('--force', args.force),
+          ('--hours', args.hours is not None),
+          ('--queue', args.queue != 0),
+          ('--queues', args.queues != 1),
+        )
+        if given
+      ]
+      if ignored:
+        raise ValueError(
+          f'{", ".join(ignored)}: not with --ray_address (a cluster runs '
+          'every chosen run once)'
+        )
       scheduling.train_ray(args.ray_address, args.only)
     else:
       if not 0 <= args.queue < args.queues:

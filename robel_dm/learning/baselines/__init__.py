@@ -334,14 +334,14 @@ def _best_policy_steps(
 def _confirmed(run: Run, log=print) -> bool:
   """Whether the best policy of a Random-task run that stopped early holds
   the solved rate on `confirm_episodes_random` fresh episodes (seeded apart
-  from training, its evaluations and the final evaluation, and apart from
-  each earlier confirmation). Its 10-episode evaluations, always the same
-  episodes, can read 0.8 twice by luck: two such stops gave 0.64 and 0.52
-  on the final 50 episodes. A policy is checked once: checking the same
-  one again until a reading passes would only select a lucky reading, so
-  a run whose best policy was checked trains on until it has a new one
-  (or to its budget). A constrained agent's policy must also keep its
-  safety budget on those episodes."""
+  from training, its evaluations, the validation and the test episodes, and
+  from each earlier confirmation). Its 10-episode evaluations, always the
+  same episodes, can read 0.8 twice by luck: under protocol 1, two such
+  stops read 0.64 and 0.52 on the final 50 episodes. A policy is checked
+  once: checking the same one again until a reading passes would only
+  select a lucky reading, so a run whose best policy was checked trains on
+  until it has a new one (or to its budget). A constrained agent's policy
+  must also keep its safety budget on those episodes."""
   from robel_dm import evaluation, policies  # noqa: PLC0415
   from robel_dm.learning import agents, training  # noqa: PLC0415
 
@@ -519,7 +519,7 @@ def _read(run: Run, policy, which: str) -> None:
   (run.directory / which).write_text(json.dumps(reading, indent=1))
 
 
-def _to_80(log: list[dict]) -> dict | None:
+def _first_solved_evaluation(log: list[dict]) -> dict | None:
   """The first training evaluation at or above the solved rate."""
   return next(
     (row for row in log if row['success_rate'] >= PLAN['solved']), None
@@ -542,7 +542,7 @@ def record(run: Run) -> dict:
   log = evaluations(run)
   test = json.loads((run.directory / TEST).read_text())
   validation = json.loads((run.directory / VALIDATION).read_text())
-  last, reached = log[-1], _to_80(log)
+  last, reached = log[-1], _first_solved_evaluation(log)
   config = json.loads((run.directory / 'config.json').read_text())
   confirmations = run.directory / CONFIRMATIONS
   source = run.source()

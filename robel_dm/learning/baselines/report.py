@@ -161,7 +161,7 @@ def _per_run(group: list[dict], unit: str) -> str:
   return f'{statistics.median(minutes):.1f}'
 
 
-def _to_80(group: list[dict], unit: str) -> str:
+def _median_minutes_to_80(group: list[dict], unit: str) -> str:
   """The median over seeds of the wall or CPU minutes to 80%; unsolved
   seeds count as more than the run."""
   values = sorted(
@@ -196,7 +196,7 @@ def _steps_to_80(group: list[dict]) -> str:
 
 
 def _cpu_to_80(group: list[dict]) -> str:
-  return _in_source(group, _to_80(group, 'cpu'))
+  return _in_source(group, _median_minutes_to_80(group, 'cpu'))
 
 
 def results_table(rows: list[dict], domain: str) -> str:

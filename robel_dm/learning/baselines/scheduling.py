@@ -76,6 +76,9 @@ def train_queue(
     else:
       merge_results([result])
   for run in waiting:
+    if deadline and time.monotonic() > deadline:
+      print('time budget used up; the rest resumes on the next call')
+      return
     result = make_run(run, log=log)
     if result is not None:
       merge_results([result])
@@ -99,7 +102,9 @@ def runs_to_make(pattern: str | None) -> list[Run]:
 
 def train_ray(address: str, pattern: str | None) -> list[dict]:
   """Every selected run as a Ray task (one CPU each); the records merged
-  into docs/baselines.json as they end. `address` 'local' starts a Ray
+  into docs/baselines.json as they end. A run that waits for another (its
+  demonstrations' source, or the run it starts from) is named and left for
+  the next call. `address` 'local' starts a Ray
   instance on this machine for the call."""
   from robel_dm.evaluation import workers  # noqa: PLC0415
 
@@ -117,5 +122,13 @@ def train_ray(address: str, pattern: str | None) -> list[dict]:
         if result is not None:
           records.append(result)
           merge_results([result])
-        print(f'{run.name}: {"done" if result else "waits for demos"}')
+        print(
+          f'{run.name}: '
+          + (
+            'done'
+            if result
+            else 'waits (for demonstrations or the run it starts from; '
+            'call again when that is done)'
+          )
+        )
     return records

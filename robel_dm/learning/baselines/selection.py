@@ -14,7 +14,7 @@ import math
 import pathlib
 import statistics
 
-from robel_dm.learning import agents, baselines
+from robel_dm.learning import agents, baselines, run_files
 
 # A median over seeds where an unsolved seed counts as "more than the
 # budget": infinity sorts after every number.
@@ -375,8 +375,9 @@ def best_policy(
     return None
   run = baselines.Run(domain, task, row['algo'], row['seed'])
   # A run being made again holds a best policy of its own, not its row's.
-  if baselines.finished(run) and (run.directory / 'policy_best.npz').is_file():
-    return run.directory / 'policy_best.npz'
+  best = run.directory / run_files.BEST_POLICY
+  if baselines.finished(run) and best.is_file():
+    return best
   if metadata and (metadata['algo'], metadata['seed']) == (
     row['algo'],
     row['seed'],
