@@ -1,7 +1,8 @@
 """Per-episode dynamics randomization on the compiled model.
 
-Every range ROBEL randomizes lives here, as data (docs/robel_reference.md
-sections 2.1-2.4, 6). The randomizer writes the compiled `MjModel` in place
+Every dynamics range ROBEL randomizes lives here, as data
+(docs/robel_reference.md sections 2.1-2.4, 6); the terrain's is the arena's
+(`arenas/floor.py`). The randomizer writes the compiled `MjModel` in place
 with one vectorized write per quantity, always relative to a nominal snapshot
 taken after compilation, so draws never compound across episodes and the
 MJCF is never recompiled.
@@ -27,7 +28,10 @@ class Range:
   high: float | tuple[float, ...]
 
   def __post_init__(self):
-    if np.any(np.asarray(self.low) > np.asarray(self.high)):
+    low, high = np.asarray(self.low, float), np.asarray(self.high, float)
+    if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high))):
+      raise ValueError(f'a range needs finite ends: {self.low}, {self.high}')
+    if np.any(low > high):
       raise ValueError(f'empty range: low {self.low} > high {self.high}')
 
   def sample(
@@ -66,6 +70,23 @@ class DynamicsRanges:
   mount_offset: Range | None = None
   color: Range | None = None
   total_mass: Range | None = None
+
+  def __post_init__(self):
+    # Physical quantities that a negative draw would make diverge.
+    for name in _NONNEGATIVE:
+      value = getattr(self, name)
+      if value is None:
+        continue
+      if not isinstance(value, Range):
+        raise ValueError(f'dynamics.{name} must be a Range, got {value!r}')
+      if np.any(np.asarray(value.low) < 0):
+        raise ValueError(f'dynamics.{name} must not go below 0: {value}')
+
+
+# The ranges of `DynamicsRanges` that cannot be negative.
+_NONNEGATIVE = (
+  'damping', 'friction_loss', 'actuator_kp', 'geom_friction', 'total_mass'
+)  # fmt: skip
 
 
 # --- ROBEL's ranges --------------------------------------------------------

@@ -8,7 +8,7 @@ performance-critical settings (compile the MJCF once, batch substeps, strip
 singleton observation dimensions) are the same for every task.
 """
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 import difflib
 import math
 import os
@@ -88,6 +88,10 @@ def _checked_task(domain: str, task: str, task_kwargs) -> dict:
         f'(suite.load({owners[0]!r}, {task!r}))'
       )
     raise _unknown(f'{domain} task', task, tasks)
+  if task_kwargs is not None and not isinstance(task_kwargs, Mapping):
+    raise ValueError(
+      f'task_kwargs must be a mapping of option names, got {task_kwargs!r}'
+    )
   if 'random' in (task_kwargs or {}):
     raise ValueError(
       "task_kwargs={'random': ...}: robel_dm tasks take no random state; "
@@ -210,7 +214,7 @@ def load_excitation(
     seed=seed,
     time_limit=None,
     environment_kwargs=None,
-    robot=robot,
+    robot=_robot_options(robot),
     dynamics=dynamics,
   )
 

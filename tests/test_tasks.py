@@ -371,3 +371,53 @@ def test_safety_counters_on_hand_built_states(task_id, shared_env):
   np.testing.assert_array_equal(_signal(env, 'safety'), [joints, joints, 0])
   if valve is not None:
     assert valve.qvel[0] == 5.0
+
+
+_BAD_OPTIONS = (
+  ('dclaw', 'turn_fixed', {'observation_noise': '0.1'}, 'observation_noise'),
+  ('dclaw', 'turn_fixed', {'observation_noise': True}, 'observation_noise'),
+  ('dclaw', 'turn_fixed', {'observation_noise': float('nan')}, 'finite'),
+  ('dclaw', 'turn_fixed', {'observation_keys': 5}, 'observation_keys'),
+  ('dclaw', 'turn_fixed', {'observation_keys': []}, 'observation_keys is'),
+  ('dclaw', 'turn_fixed', {'dynamics': 'robel'}, 'dynamics must be'),
+  ('dclaw', 'turn_fixed', {'success_threshold': -1.0}, 'success_threshold'),
+  ('dclaw', 'turn_fixed', {'success_threshold': 'x'}, 'success_threshold'),
+  ('dclaw', 'turn_fixed', {'episode_steps': 10.5}, 'episode_steps'),
+  ('dclaw', 'turn_fixed', {'episode_steps': True}, 'episode_steps'),
+  ('dclaw', 'turn_fixed', {'reward': {'bonus_big': 'x'}}, 'reward.bonus_big'),
+  ('dclaw', 'turn_random_dynamics', {'privileged': 1}, 'privileged'),
+  ('dkitty', 'walk_fixed', {'terrain': 'False'}, 'terrain must be'),
+  ('dkitty', 'stand_fixed', {'settle_substeps': 10.5}, 'settle_substeps'),
+)
+
+
+@pytest.mark.parametrize(('domain', 'task', 'options', 'message'), _BAD_OPTIONS)
+def test_a_task_option_of_the_wrong_kind_is_one_line_naming_it(
+  domain, task, options, message
+):
+  # Refused when the task is built, before an episode: not clipped,
+  # defaulted or read as something else.
+  with pytest.raises(ValueError, match=message):
+    suite.load(domain, task, task_kwargs=options).reset()
+
+
+def test_reward_constants_given_whole_are_checked_too():
+  from robel_dm.tasks import dclaw_turn  # noqa: PLC0415
+
+  reward = dclaw_turn.TurnReward(target_dist_weight=float('nan'))
+  with pytest.raises(ValueError, match='reward.target_dist_weight'):
+    suite.load('dclaw', 'turn_fixed', task_kwargs={'reward': reward})
+
+
+def test_negative_randomized_physics_is_refused():
+  from robel_dm import randomization  # noqa: PLC0415
+
+  with pytest.raises(ValueError, match='dynamics.damping must not go below'):
+    randomization.DynamicsRanges(damping=randomization.Range(-1.0, -0.5))
+  with pytest.raises(ValueError, match='finite ends'):
+    randomization.Range(0.0, float('inf'))
+
+
+def test_task_kwargs_must_be_a_mapping():
+  with pytest.raises(ValueError, match='task_kwargs must be a mapping'):
+    suite.load('dclaw', 'turn_fixed', task_kwargs=[('valve', 'valve4')])

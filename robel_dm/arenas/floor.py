@@ -24,6 +24,8 @@ class KittyFloor(composer.Arena):
       terrain: add ROBEL's random heightfield (RandomDynamics variants).
       name: model name.
     """
+    if not isinstance(terrain, bool):
+      raise ValueError(f'terrain must be true or false, got {terrain!r}')
     path = assets.xml_path('arenas', 'kitty_floor.xml')
     self._mjcf_root = mjcf.from_path(str(path))
     self._mjcf_root.model = name

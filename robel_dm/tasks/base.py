@@ -19,6 +19,7 @@ import collections
 from collections.abc import Callable, Mapping
 import dataclasses
 import math
+import numbers
 from typing import Any
 
 from dm_control import composer, mjcf
@@ -64,6 +65,7 @@ def reward_constants(default, given):
   if given is None or given is default:
     return default
   if isinstance(given, type(default)):
+    _check_reward_values(dataclasses.asdict(given))
     return given
   if not isinstance(given, Mapping):
     raise ValueError(
@@ -74,12 +76,23 @@ def reward_constants(default, given):
   unknown = sorted(set(given) - set(fields))
   if unknown:
     raise ValueError(f'reward: unknown constants {unknown}; known: {fields}')
-  for name, value in given.items():
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
+  _check_reward_values(given)
+  return dataclasses.replace(default, **given)
+
+
+def _check_reward_values(values: Mapping) -> None:
+  """Raises ValueError naming a reward constant that is not a finite
+  number."""
+  for name, value in values.items():
+    if not is_real(value):
       raise ValueError(f'reward.{name} must be a number, got {value!r}')
     if not math.isfinite(value):
       raise ValueError(f'reward.{name} must be finite, got {value}')
-  return dataclasses.replace(default, **given)
+
+
+def is_real(value: Any) -> bool:
+  """A real number, not a bool (which Python counts as one)."""
+  return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 def mocap_index(physics, body: mjcf.Element) -> int:
@@ -190,6 +203,52 @@ class TaskOptions:
   privileged: bool | str = False
 
 
+def _check_options(options: TaskOptions) -> None:
+  """Raises ValueError naming the first option of the wrong kind or out of
+  range (before any is used)."""
+  if options.dynamics is not None and not isinstance(
+    options.dynamics, randomization.DynamicsRanges
+  ):
+    raise ValueError(
+      'dynamics must be a randomization.DynamicsRanges or None, got '
+      f'{options.dynamics!r}'
+    )
+  noise = options.observation_noise
+  if not is_real(noise) or not math.isfinite(noise) or noise < 0:
+    raise ValueError(
+      f'observation_noise must be a finite number >= 0, got {noise!r}'
+    )
+  keys = options.observation_keys
+  if not (
+    keys is None
+    or isinstance(keys, str)
+    or (
+      isinstance(keys, (list, tuple))
+      and all(isinstance(key, str) for key in keys)
+    )
+  ):
+    raise ValueError(
+      f'observation_keys must be a list of observation names, got {keys!r}'
+    )
+  if options.action_bounds not in ACTION_BOUND_MODES:
+    raise ValueError(
+      f'action_bounds must be one of {ACTION_BOUND_MODES}, got '
+      f'{options.action_bounds!r}'
+    )
+  if options.action_map not in ACTION_MAPS:
+    raise ValueError(
+      f'action_map must be one of {ACTION_MAPS}, got {options.action_map!r}'
+    )
+  # By identity: 1 == True, and would pass for either.
+  privileged = options.privileged
+  if not (
+    privileged is True or privileged is False or privileged == 'dynamics'
+  ):
+    raise ValueError(
+      f'privileged must be one of {PRIVILEGED_CHOICES}, got {privileged!r}'
+    )
+
+
 class RobelTask(composer.Task):
   """Base class of robel_dm tasks (one level below `composer.Task`).
 
@@ -216,35 +275,23 @@ class RobelTask(composer.Task):
         from `self.reward_constants`.
 
     Raises:
-      ValueError: for bad reward constants, a bad `action_bounds` or
-        `action_map`, a
-        negative noise fraction, non-positive episode length or unknown
-        observation keys (checked in that order).
+      ValueError: naming the option, for any of `TaskOptions` of the wrong
+        kind or out of range (`_check_options`), unknown or repeated
+        observation keys, privileged observations without randomized
+        dynamics, or a non-positive episode length.
     """
+    _check_options(options)
     self.reward_constants = reward_constants(
       self.DEFAULT_REWARD, options.reward
     )
     action_bounds = options.action_bounds
-    if action_bounds not in ACTION_BOUND_MODES:
-      raise ValueError(
-        f'action_bounds must be one of {ACTION_BOUND_MODES}, got '
-        f'{action_bounds!r}'
-      )
-    if options.action_map not in ACTION_MAPS:
-      raise ValueError(
-        f'action_map must be one of {ACTION_MAPS}, got {options.action_map!r}'
-      )
     observation_noise = options.observation_noise
-    if observation_noise < 0 or not math.isfinite(observation_noise):
-      raise ValueError(f'observation_noise must be >= 0: {observation_noise}')
-    if scene.episode_steps <= 0:
-      raise ValueError(f'episode_steps must be positive: {scene.episode_steps}')
+    episode_steps = scene.episode_steps
+    if not isinstance(episode_steps, int) or isinstance(episode_steps, bool):
+      raise ValueError(f'episode_steps must be an integer: {episode_steps!r}')
+    if episode_steps <= 0:
+      raise ValueError(f'episode_steps must be positive: {episode_steps}')
     keys = self._checked_keys(options.observation_keys)
-    if options.privileged not in PRIVILEGED_CHOICES:
-      raise ValueError(
-        f'privileged must be one of {PRIVILEGED_CHOICES}, got '
-        f'{options.privileged!r}'
-      )
     if options.privileged and options.dynamics is None:
       raise ValueError(
         'privileged observations need randomized dynamics (a '
@@ -287,9 +334,13 @@ class RobelTask(composer.Task):
   def _checked_keys(self, observation_keys) -> tuple[str, ...]:
     """The agent's observation keys: the given ones or the task's default,
     each a feature of the task, none repeated."""
-    if isinstance(observation_keys, str):
+    if observation_keys is None:
+      observation_keys = self.DEFAULT_OBSERVATION_KEYS
+    elif isinstance(observation_keys, str):
       observation_keys = (observation_keys,)
-    keys = tuple(observation_keys or self.DEFAULT_OBSERVATION_KEYS)
+    keys = tuple(observation_keys)
+    if not keys:
+      raise ValueError('observation_keys is empty: name at least one')
     unknown = [key for key in keys if key not in self.FEATURES]
     if unknown:
       raise ValueError(

@@ -54,6 +54,18 @@ _RANDOM_INITIAL_ANGLE = distributions.Uniform(-np.pi / 3, np.pi / 3)
 _RANDOM_GOAL_ANGLE = distributions.Uniform(2 * np.pi / 3, 4 * np.pi / 3)
 
 
+def _check_threshold(success_threshold) -> None:
+  if not (
+    base.is_real(success_threshold)
+    and math.isfinite(success_threshold)
+    and success_threshold > 0
+  ):
+    raise ValueError(
+      'success_threshold must be a positive number of rad, got '
+      f'{success_threshold!r}'
+    )
+
+
 class TurnTask(base.RobelTask):
   """Turn the valve to a goal angle; the goal may move at a fixed velocity."""
 
@@ -113,10 +125,12 @@ class TurnTask(base.RobelTask):
         `reward`).
 
     Raises:
-      ValueError: for an unknown valve or `success_on`.
+      ValueError: for an unknown valve or `success_on`, or a
+        `success_threshold` that is not a positive number.
     """
     if success_on not in (SUCCESS_AT_FINAL_STEP, SUCCESS_ON_MEAN_ERROR):
       raise ValueError(f'success_on must be final or mean: {success_on!r}')
+    _check_threshold(success_threshold)
     arena = station.ClawStation(mount_height=station.MOUNT_HEIGHT_VALVE)
     claw = dclaw.DClaw()
     arena.attach_claw(claw)

@@ -88,8 +88,14 @@ class StandTask(base.RobelTask):
         `observation_noise`, `observation_keys`, `action_bounds`, `reward`).
     """
     self._kitty = dkitty_common.KittyParts(terrain=terrain, upright=_UPRIGHT)
-    if settle_substeps < 0:
-      raise ValueError(f'settle_substeps must be >= 0: {settle_substeps}')
+    if (
+      not isinstance(settle_substeps, int)
+      or isinstance(settle_substeps, bool)
+      or settle_substeps < 0
+    ):
+      raise ValueError(
+        f'settle_substeps must be an integer >= 0, got {settle_substeps!r}'
+      )
     self._settle_substeps = settle_substeps
     self._initial_pose = initial_pose
     self._goal_pose = dkitty.STANDING_POSE

@@ -11,6 +11,8 @@ The reward is the negative distance between the targets and the joints, so
 a recording shows how well the servos track.
 """
 
+import math
+
 from dm_control import composer
 import numpy as np
 
@@ -69,8 +71,12 @@ class JointExcitation(base.RobelTask):
     """
     if domain not in CENTER_POSE:
       raise ValueError(f'no excitation for {domain!r}; one of {DOMAINS}')
-    if not duration > 0:
-      raise ValueError(f'duration must be positive, got {duration!r} s')
+    if not (
+      base.is_real(duration) and math.isfinite(duration) and duration > 0
+    ):
+      raise ValueError(
+        f'duration must be a positive number of s, got {duration!r}'
+      )
     arena, robot = _scene(domain)
     joints = len(robot.joints)
     self.FEATURES = {'qpos': joints, 'qvel': joints, 'last_action': joints}
