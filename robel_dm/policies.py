@@ -599,6 +599,12 @@ def make_policy(
     policy = load(path)
     if domain is not None:
       policy.check_task(domain, task, task_kwargs)
+    if policy.action_map != env.task.action_map:
+      raise PolicyError(
+        f'{path} learned through the {policy.action_map} action map; this '
+        f'task acts through the {env.task.action_map} one: build it with '
+        f"task_kwargs action_map='{policy.action_map}'"
+      )
     keys = env.task.agent_observation_keys
     observations = env.observation_spec()
     _check_sizes(

@@ -361,3 +361,18 @@ def test_a_local_ray_instance_gives_the_same_episodes_as_a_serial_run():
     )
   )
   assert on_ray['records'] == serial['records']
+
+
+def test_a_policy_is_refused_on_a_task_of_another_action_map():
+  # The shipped Pose Random policy learned through the safe map; on a task
+  # built with ROBEL's it would act through a map it never learned.
+  env = suite.load('dclaw', 'pose_random', seed=0)
+  with pytest.raises(policies.PolicyError, match='learned through the safe'):
+    policies.make_policy('baseline', env, 0, 'dclaw', 'pose_random', {})
+  env = suite.load(
+    'dclaw', 'pose_random', seed=0, task_kwargs={'action_map': 'safe'}
+  )
+  policy = policies.make_policy(
+    'baseline', env, 0, 'dclaw', 'pose_random', {'action_map': 'safe'}
+  )
+  assert policy.action_map == 'safe'

@@ -485,6 +485,11 @@ def test_learning_starts_from_a_recording(tmp_path):
      'max_violations must be >= 1'),
     (robot_training.RobotRunOptions(_VIRTUAL_BUS, updates_per_step=0), CONFIG,
      'updates_per_step must be in'),
+    (robot_training.RobotRunOptions(suite.RobotOptions('/dev/ttyUSB9'),
+      dynamics='claw_a.json'), CONFIG, '--dynamics calibrates a simulated'),
+    (robot_training.RobotRunOptions(_VIRTUAL_BUS), dataclasses.replace(
+      CONFIG, task='pose_random_dynamics',
+      task_kwargs={'privileged': 'dynamics'}), 'only a simulation knows'),
   ],
 )  # fmt: skip
 def test_bad_robot_options_are_refused_before_the_robot_moves(
@@ -492,7 +497,21 @@ def test_bad_robot_options_are_refused_before_the_robot_moves(
 ):
   with pytest.raises(ValueError, match=message):
     robot_training.train_on_robot(config, options, tmp_path, log=print)
-  assert not (tmp_path / robot_training.RECORDING).exists()
+  # Nothing written: the corrected command runs.
+  assert not any(tmp_path.iterdir())
+
+
+def test_a_bare_model_file_cannot_start_a_robot_run(tmp_path):
+  # Its action map and valve are in the run's config.json, not in the
+  # model: without it, the robot could act through another map.
+  source = tmp_path / 'copied'
+  source.mkdir()
+  (source / 'checkpoint.zip').write_bytes(b'')
+  config = dataclasses.replace(CONFIG, init_from=str(source / 'checkpoint.zip'))
+  output = tmp_path / 'run'
+  with pytest.raises(ValueError, match='no config.json beside the model'):
+    robot_training.train_on_robot(config, VIRTUAL, output, log=print)
+  assert not output.exists()
 
 
 _AGENT_CHECK = """

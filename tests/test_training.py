@@ -369,6 +369,33 @@ def test_agents_that_learn_from_demonstrations_need_them(tmp_path):
   assert not any(tmp_path.iterdir())
 
 
+@pytest.mark.parametrize(
+  ('changes', 'message'),
+  [
+    ({'seed': -1}, 'seed must be >= 0'),
+    ({'stop_at_success': 5.0}, 'stop_at_success is a success rate'),
+    ({'stop_at_success': float('nan')}, 'stop_at_success is a success rate'),
+    ({'num_envs': 2, 'from_recording': ('x',)}, 'need --num_envs=1'),
+    ({'algo': 'bc', 'demos': ('x',)}, '--safety_penalty: --algo=bc fits'),
+    (
+      {'algo': 'bc', 'demos': ('x',), 'safety_penalty': 0.0,
+       'stop_at_success': 0.8},
+      '--stop_at_success: --algo=bc fits',
+    ),
+    ({'algo': 'sac_warm'}, '--algo=sac_warm starts from another run'),
+    ({'algo': 'sac_sb3', 'safety_penalty': 0.0, 'safety_budget': 5.0},
+     'needs an sbx SAC agent'),
+  ],
+)  # fmt: skip
+def test_a_setting_training_would_ignore_or_fail_on_is_refused_unwritten(
+  tmp_path, changes, message
+):
+  # Refused before the run folder is written: the corrected command runs.
+  with pytest.raises(ValueError, match=message):
+    learning.train(_config(**changes), tmp_path, **QUIET)
+  assert not any(tmp_path.iterdir())
+
+
 def test_every_agent_names_its_source_and_paper_kind():
   kinds = {agent.paper for agent in agents.AGENTS.values()}
   assert kinds == {'SAC', 'NPG', 'BC', 'DAPG'}
@@ -427,7 +454,7 @@ def test_resume_refuses_a_run_built_with_other_agent_settings(tmp_path):
     ({'safety_budget': 10.0}, 'choose one of safety_penalty'),
     (
       {'safety_budget': 10.0, 'safety_penalty': 0.0, 'algo': 'trpo'},
-      '--safety_budget needs a SAC agent',
+      '--safety_budget needs an sbx SAC agent',
     ),
     ({'init_from': '/nonexistent/run'}, 'no saved model there'),
   ],

@@ -62,3 +62,10 @@ def test_the_records_are_of_the_policies_shipped_now():
       metadata['algo'],
       metadata['seed'],
     ), record['policy']
+
+
+def test_a_pattern_that_matches_no_pairing_is_an_error(capsys):
+  from robel_dm.commands import zoo as zoo_cli  # noqa: PLC0415
+
+  assert zoo_cli.main(['evaluate', '--only=pose_*/*']) == 2
+  assert "matches no 'policy/robot' pairing" in capsys.readouterr().err

@@ -71,7 +71,9 @@ def main(argv):
     raise app.UsageError(f'unexpected arguments: {argv[1:]}')
   try:
     check_display()
-    task_kwargs = task_args.parse_task_kwargs(FLAGS.task_kwargs)
+    task_kwargs = _with_policy_options(
+      task_args.parse_task_kwargs(FLAGS.task_kwargs)
+    )
     env = suite.load(
       FLAGS.domain, FLAGS.task, seed=FLAGS.seed, task_kwargs=task_kwargs
     )
@@ -87,6 +89,24 @@ def main(argv):
     print(f'error: {error}', file=sys.stderr)
     return 2
   return 0
+
+
+def _with_policy_options(task_kwargs: dict) -> dict:
+  """The task arguments with a policy file's action map (and privileged
+  observation) where they name none, as `robel-evaluate` does (said)."""
+  if not FLAGS.policy:
+    return task_kwargs
+  checked = policies.check_file(
+    FLAGS.policy, FLAGS.domain, FLAGS.task, task_kwargs
+  )
+  if checked is None:
+    return task_kwargs
+  adopted = checked.task_kwargs_for(task_kwargs)
+  for option, value in adopted.items():
+    if option not in task_kwargs:
+      print(f'the policy learned with task option {option}={value}: '
+            'viewing with it')  # fmt: skip
+  return adopted
 
 
 def run() -> None:

@@ -36,7 +36,11 @@ def main(argv: list[str] | None = None) -> int:
   elif args.command == 'evaluate':
     if not 0 <= args.shard < args.shards:
       parser.error('--shard must be in [0, --shards)')
-    transfer.run(args.only, args.shard, args.shards)
+    try:
+      transfer.run(args.only, args.shard, args.shards)
+    except ValueError as error:
+      print(f'error: {error}', file=sys.stderr)
+      return 2
   else:
     transfer.report()
   return 0

@@ -45,9 +45,3 @@ def format_summary(results: dict[str, Any]) -> str:
       f'steps per second  {results["steps_per_second"]:.0f}',
     ]
   )
-
-
-def format_table(results: dict[str, Any]) -> str:
-  """Formats the results as a plain-text table."""
-  rows = [format_row(i, r) for i, r in enumerate(results['records'])]
-  return '\n'.join([format_header(results), *rows, format_summary(results)])

@@ -52,6 +52,11 @@ class RobotRunOptions:
     """Raises ValueError naming the first bad option."""
     if self.hours is not None and not self.hours > 0:
       raise ValueError(f'hours must be > 0, got {self.hours}')
+    if self.dynamics is not None and not self.robot.virtual:
+      raise ValueError(
+        f'--dynamics calibrates a simulated robot: the robot on '
+        f'{self.robot.device_path} has its own (--device_path=virtual)'
+      )
     if self.max_violations is not None and self.max_violations < 1:
       raise ValueError(
         f'max_violations must be >= 1, got {self.max_violations}'

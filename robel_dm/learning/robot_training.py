@@ -439,6 +439,22 @@ def _check_settings(
     )
   if config.num_envs != 1:
     raise ValueError('a robot is one environment: --num_envs must be 1')
+  if config.task_kwargs.get('privileged'):
+    raise ValueError(
+      'privileged observations are what only a simulation knows: a robot '
+      'gives none'
+    )
+  if (
+    config.init_from is not None
+    and not (
+      run_files.init_checkpoint(config.init_from).parent / run_files.CONFIG
+    ).is_file()
+  ):
+    raise ValueError(
+      f'--init_from={config.init_from}: no {run_files.CONFIG} beside the '
+      'model, so its action map and valve cannot be checked against this '
+      'run: give its run folder'
+    )
   # The learner process imports the agent's library; the actor need not.
   agents.check_available(config.agent)
 

@@ -22,6 +22,14 @@ RESUMABLE_CHANGES = (
 )
 
 
+# The agents that take a safety budget and start from another run.
+_SBX_SAC = tuple(
+  sorted(
+    name for name, a in agents.AGENTS.items() if a.library == agents.SAC_JAX
+  )
+)
+
+
 @dataclasses.dataclass(frozen=True)
 class RunConfig:
   """What a training run is.
@@ -110,13 +118,34 @@ class RunConfig:
 
   def check(self) -> None:
     """Raises ValueError naming the first bad setting."""
+    self._check_numbers()
+    self._check_sac_options()
+    if any(size < 1 for size in self.layers):
+      raise ValueError(f'hidden sizes must be >= 1, got {self.hidden}')
+    self._check_data()
+    self._check_imitation()
+    randomized = (self.domain, self.task) in suite.RANDOM_DYNAMICS
     agent = self.agent
+    if agent.starts_from is not None and self.init_from is None:
+      raise ValueError(
+        f'--algo={self.algo} starts from another run: give --init_from=RUN '
+        '(without it, it is the agent it is made from)'
+      )
+    if (agent.privileged or agent.curriculum) and not randomized:
+      raise ValueError(
+        f'--algo={self.algo} works on the randomized dynamics: it needs a '
+        f'RandomDynamics task, not {self.domain}/{self.task}'
+      )
+
+  def _check_numbers(self) -> None:
+    """Counts, seed, penalty and stop rate in range."""
     for name in (
       'steps',
       'num_envs',
       'eval_every',
       'eval_episodes',
       'stop_streak',
+      'demo_episodes',
     ):
       if getattr(self, name) < 1:
         raise ValueError(f'{name} must be >= 1, got {getattr(self, name)}')
@@ -124,9 +153,19 @@ class RunConfig:
       raise ValueError(
         f'safety_penalty must be >= 0, got {self.safety_penalty}'
       )
-    self._check_sac_options()
-    if any(size < 1 for size in self.layers):
-      raise ValueError(f'hidden sizes must be >= 1, got {self.hidden}')
+    if self.seed < 0:
+      raise ValueError(f'seed must be >= 0, got {self.seed}')
+    if self.stop_at_success is not None and not (
+      0 <= self.stop_at_success <= 1
+    ):
+      raise ValueError(
+        f'stop_at_success is a success rate in [0, 1], got '
+        f'{self.stop_at_success}'
+      )
+
+  def _check_data(self) -> None:
+    """Demonstrations and recordings: where the agent can use them."""
+    agent = self.agent
     if agent.needs_demos and not (self.demos or self.from_recording):
       raise ValueError(f'--algo={self.algo} learns from --demos=DIR')
     if self.from_recording and agent.kind == agents.ON_POLICY:
@@ -136,14 +175,23 @@ class RunConfig:
       )
     if self.demos and not agent.needs_demos:
       raise ValueError(f'--algo={self.algo} does not use --demos')
-    if self.demo_episodes < 1:
-      raise ValueError('demo_episodes must be >= 1')
-    randomized = (self.domain, self.task) in suite.RANDOM_DYNAMICS
-    if (agent.privileged or agent.curriculum) and not randomized:
-      raise ValueError(
-        f'--algo={self.algo} works on the randomized dynamics: it needs a '
-        f'RandomDynamics task, not {self.domain}/{self.task}'
-      )
+    if (self.demos or self.from_recording) and self.num_envs != 1:
+      raise ValueError('demonstrations and recordings need --num_envs=1')
+
+  def _check_imitation(self) -> None:
+    """Raises ValueError for a setting behaviour cloning would ignore."""
+    if self.agent.kind != agents.IMITATION:
+      return
+    for name, given in (
+      ('stop_at_success', self.stop_at_success is not None),
+      ('safety_penalty', bool(self.safety_penalty)),
+      ('num_envs', self.num_envs != 1),
+    ):
+      if given:
+        raise ValueError(
+          f'--{name}: --algo={self.algo} fits demonstrations for --steps '
+          'epochs, in no environment'
+        )
 
   def _check_sac_options(self) -> None:
     sac_agent = self.agent.library == agents.SAC_JAX
@@ -160,7 +208,7 @@ class RunConfig:
     for name in ('safety_budget', 'init_from'):
       if getattr(self, name) is not None and not sac_agent:
         raise ValueError(
-          f'--{name} needs a SAC agent (sac, droq, sac_demos), not '
+          f'--{name} needs an sbx SAC agent ({", ".join(_SBX_SAC)}), not '
           f'--algo={self.algo}'
         )
     if self.init_from is not None:
@@ -223,4 +271,9 @@ class RunConfig:
 
 
 def parse_hidden(values: Sequence[str]) -> tuple[int, ...]:
-  return tuple(int(value) for value in values if value)
+  try:
+    return tuple(int(value) for value in values if value)
+  except ValueError:
+    raise ValueError(
+      f'--hidden={",".join(values)}: give layer sizes, e.g. 256,256'
+    ) from None

@@ -470,6 +470,11 @@ class RobelTask(composer.Task):
     return self._task_observables
 
   @property
+  def action_map(self) -> str:
+    """How actions become joint targets: 'robel' or 'safe'."""
+    return ACTION_MAPS[1] if self._safe_action_map else ACTION_MAPS[0]
+
+  @property
   def agent_observation_keys(self) -> tuple[str, ...]:
     """Names of the observations the agent sees, in flattening order."""
     return self._agent_keys

@@ -151,10 +151,24 @@ def run(
   pattern: str | None = None, shard: int = 0, shards: int = 1, log=print
 ) -> None:
   """Evaluates this shard's pairings that have no record yet, merging each
-  record as it is made (a cut run resumes where it stopped)."""
+  record as it is made (a cut run resumes where it stopped).
+
+  Raises:
+    ValueError: if `pattern` matches no pairing.
+  """
   done = {_key(r) for r in load_records()}
-  for index, pairing in enumerate(pairings(pattern)):
-    if index % shards != shard or (pairing.policy, pairing.robot_name) in done:
+  chosen = pairings(pattern)
+  if not chosen:
+    raise ValueError(
+      f"--only={pattern} matches no 'policy/robot' pairing (e.g. "
+      "'dclaw_pose_*/*')"
+    )
+  skipped = 0
+  for index, pairing in enumerate(chosen):
+    if index % shards != shard:
+      continue
+    if (pairing.policy, pairing.robot_name) in done:
+      skipped += 1
       continue
     record = evaluate_pairing(pairing)
     merge([record])
@@ -163,6 +177,8 @@ def run(
       f'{record["success"]:.2f}, violations per episode '
       f'{sum(record["violations"].values()):.1f}'
     )
+  if skipped:
+    log(f'{skipped} pairings already recorded')
 
 
 # --- The tables ------------------------------------------------------------
