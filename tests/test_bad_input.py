@@ -469,3 +469,16 @@ def test_a_policy_runs_on_another_variant_only_when_asked(run_main):
     '--allow_other_variant',
   )  # fmt: skip
   assert code == 2 and 'trained on dclaw/pose_fixed' in err
+
+
+@pytest.mark.parametrize(
+  ('flags', 'message'),
+  [
+    (['--camera=front'], '--camera needs --video'),
+    (['--allow_other_seed'], '--allow_other_seed needs --policy=replay'),
+    (['--allow_other_variant'], '--allow_other_variant needs a policy file'),
+  ],
+)
+def test_a_flag_that_would_do_nothing_is_refused(run_main, flags, message):
+  code, _, err = run_main('--policy=zero', '--episodes=1', *flags)
+  assert code == 2 and message in err

@@ -340,12 +340,16 @@ def test_workers_give_the_same_episodes_as_a_serial_run(policy):
   assert parallel['success_rate'] == serial['success_rate']
 
 
-def test_workers_refuse_what_they_cannot_share():
-  with pytest.raises(ValueError, match='workers > 1'):
+def test_workers_refuse_what_they_cannot_share(tmp_path):
+  with pytest.raises(ValueError, match='not with a policy given as an object'):
     evaluation.evaluate(
       evaluation.EvalConfig(
         'dclaw', 'pose_fixed', 2, policy=lambda t: np.zeros(9), workers=2
       )
+    )
+  with pytest.raises(ValueError, match='not with recording'):
+    evaluation.EvalConfig(
+      'dclaw', 'pose_fixed', 2, policy='zero', workers=2, record=tmp_path
     )
 
 

@@ -252,7 +252,7 @@ def test_a_robot_recording_describes_its_motors(tmp_path):
 
 def test_a_replay_is_not_split_over_workers(tmp_path):
   # Each worker would start from the recording's first episode.
-  with pytest.raises(ValueError, match='not a replay'):
+  with pytest.raises(ValueError, match='not with a replay'):
     evaluation.evaluate(
       evaluation.EvalConfig(
         'dclaw', 'pose_fixed', 2, policy=f'replay:{tmp_path}', workers=2

@@ -101,20 +101,27 @@ class EvalConfig:
         raise ValueError('video episodes need a video folder (--video=DIR)')
     if self.workers < 1:
       raise ValueError(f'workers must be >= 1, got {self.workers}')
-    if self.distributed and (
-      callable(self.policy)
-      or self.replay  # Each worker would replay from the recording's start.
-      or self.robot
-      or self.video_dir
-      or self.record
-      or self.dynamics
-      or self.seed is None
+    if self.distributed:
+      self._check_distributed()
+
+  def _check_distributed(self) -> None:
+    """Raises ValueError naming the first option that workers (or a Ray
+    cluster) cannot share."""
+    for conflict, reason in (
+      (self.replay, 'a replay (each worker would replay from its start)'),
+      (self.robot, 'a robot (one process owns it)'),
+      (self.video_dir, 'video (one process films)'),
+      (self.record, 'recording (one process records)'),
+      (self.dynamics, 'dynamics (a calibration)'),
+      (self.seed is None, 'an unseeded run (the workers need a seed)'),
+      (
+        callable(self.policy),
+        'a policy given as an object (give it by name or path; not with '
+        '--allow_other_variant)',
+      ),
     ):
-      raise ValueError(
-        'workers > 1 and ray_address need a simulated task, a seed, no '
-        'video, no dynamics, and a policy given by name or path (not a '
-        'replay)'
-      )
+      if conflict:
+        raise ValueError(f'--workers / --ray_address: not with {reason}')
 
   @property
   def replay(self) -> bool:

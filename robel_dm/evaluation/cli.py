@@ -366,6 +366,21 @@ def _config(
   )
 
 
+def _check_flags_apply() -> None:
+  """Raises ValueError for a flag that would have no effect here."""
+  replay = FLAGS.policy.startswith(policies.REPLAY)
+  built_in = replay or FLAGS.policy in policies.BUILT_IN
+  for flag, useless, needs in (
+    ('--camera', FLAGS.camera and not FLAGS.video, '--video=DIR (it films)'),
+    ('--allow_other_seed', FLAGS.allow_other_seed and not replay,
+     '--policy=replay:DIR'),
+    ('--allow_other_variant', FLAGS.allow_other_variant and built_in,
+     'a policy file (or baseline)'),
+  ):  # fmt: skip
+    if useless:
+      raise ValueError(f'{flag} needs {needs}')
+
+
 def main(argv: list[str]) -> int:
   """The command: 0 when done, 2 for bad input or a failure (one line on
   stderr), 130 when interrupted."""
@@ -379,6 +394,7 @@ def main(argv: list[str]) -> int:
     task_kwargs = task_args.parse_task_kwargs(FLAGS.task_kwargs)
     tasks = task_args.select_tasks(FLAGS.domain, FLAGS.task)
     video_episodes = _video_episodes(FLAGS.video_episodes)
+    _check_flags_apply()
     checks.check_output(FLAGS.output, _read_files(tasks))
     tasks = _runnable(tasks, task_kwargs)
     checked = _checked_files(tasks, task_kwargs)

@@ -577,14 +577,14 @@ def _clone(config: RunConfig, run: Run, data, metadata) -> None:
     hyper['learning_rate'],
     every=config.eval_every,
   )
-  imitation.fit_policy(
-    data,
-    fit,
-    metadata,
-    lambda epoch, policy, loss: run.record(
-      policy, 0, epoch=epoch, loss=loss, demo_transitions=len(data)
-    ),
-  )
+
+  def on_epoch(epoch, policy, loss):
+    # The epochs a resumed run already logged are fitted again, not logged
+    # again.
+    if epoch > done:
+      run.record(policy, 0, epoch=epoch, loss=loss, demo_transitions=len(data))
+
+  imitation.fit_policy(data, fit, metadata, on_epoch)
 
 
 def _reinforce(config: RunConfig, run: Run, data, metadata, resume) -> None:
