@@ -295,7 +295,14 @@ _EXIT_SIGNALS = {
 
 def _stopped(cause: str) -> str:
   """What a run stopped by `cause` kept, and how to go on."""
-  if FLAGS.device_path:
+  if FLAGS.algo == 'bc':
+    kept = (
+      'the policy of the last evaluation is kept (--resume fits again from '
+      'the demonstrations)'
+    )
+    if FLAGS.device_path:
+      kept = f'the robot is released (torque off); {kept}'
+  elif FLAGS.device_path:
     kept = (
       'the robot is released (torque off); the networks are saved and '
       'every robot step is in the recording'

@@ -27,8 +27,9 @@ from robel_dm.evaluation import episodes, workers
 class EvalConfig:
   """What an evaluation runs, and how (checked when made).
 
-  Episode i starts from a reset seeded with `seed + i` (the policy's own
-  randomness from `seed`), so any episode can be reproduced on its own.
+  Episode i starts from a reset seeded with `seed + i` (the `random`
+  policy's actions from that seed too), so any episode can be reproduced on
+  its own.
 
   Attributes:
     domain: task domain, e.g. 'dclaw'.
