@@ -128,7 +128,12 @@ class Run:
       eval_episodes=1 if self.fixed else PLAN['eval_episodes_random'],
       demos=demos,
       demo_episodes=PLAN['demo_episodes'],
-      stop_at_success=PLAN['solved'] if PLAN['stop_when_solved'] else None,
+      # Behaviour cloning fits its epochs whatever they read.
+      stop_at_success=(
+        PLAN['solved']
+        if PLAN['stop_when_solved'] and kind != agents.IMITATION
+        else None
+      ),
       # A Fixed task's evaluation is one deterministic episode; a Random
       # one's, a sample: it must hold the rate over more than one.
       stop_streak=1 if self.fixed else PLAN['stop_streak_random'],
