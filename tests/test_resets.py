@@ -19,6 +19,17 @@ from robel_dm.hardware.virtual import sim_robot
 pytest.importorskip('dynamixel_sdk', reason='needs robel_dm[hardware]')
 
 
+def _with_limits(domain, task, limits, **robot):
+  """The task on the virtual bus, its configuration narrowed by `limits`."""
+  config = dataclasses.replace(config_lib.default(domain), limits=limits)
+  return suite.load(
+    domain,
+    task,
+    seed=0,
+    robot=suite.RobotOptions('virtual', robot_config=config, **robot),
+  )
+
+
 def _torque(bus):
   return {servo.motor_id: servo.torque_enabled for servo in bus.servos}
 
@@ -79,17 +90,9 @@ def test_stuck_finger_retries_disentangles_then_fails_naming_it(monkeypatch):
 def test_claw_reset_pose_beyond_the_configured_limits_starts_at_them(caplog):
   # Turn Fixed's reset pose bends the middle joints to -pi/3; this owner
   # allows FFJ11 no further than -0.8 rad. The reset says so and moves the
-  # finger to -0.8 (the scripted reset used to retry, disentangle and fail
-  # blaming a stuck finger).
-  config = dataclasses.replace(
-    config_lib.default('dclaw'), limits={'FFJ11': (-0.8, 0.0)}
-  )
-  env = suite.load(
-    'dclaw',
-    'turn_fixed',
-    seed=0,
-    robot=suite.RobotOptions('virtual', robot_config=config),
-  )
+  # finger to -0.8, rather than retry, disentangle and fail blaming a stuck
+  # finger.
+  env = _with_limits('dclaw', 'turn_fixed', {'FFJ11': (-0.8, 0.0)})
   try:
     with caplog.at_level('WARNING'):
       env.reset()
@@ -265,14 +268,8 @@ def test_dkitty_stand_up_sequence_runs_and_ends_upright(monkeypatch):
 def test_dkitty_stand_up_beyond_the_configured_limits_is_refused_unmoved():
   # The stand-up goes beyond the action ranges on purpose, never beyond the
   # limits an owner wrote into the robot's configuration.
-  config = dataclasses.replace(
-    config_lib.default('dkitty'), limits={'FRJ11': (-0.1, 0.1)}
-  )
-  env = suite.load(
-    'dkitty',
-    'stand_fixed',
-    seed=0,
-    robot=suite.RobotOptions('virtual', reset='scripted', robot_config=config),
+  env = _with_limits(
+    'dkitty', 'stand_fixed', {'FRJ11': (-0.1, 0.1)}, reset='scripted'
   )
   try:
     goals = env.virtual_bus.goal_positions()
