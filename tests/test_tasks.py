@@ -388,6 +388,9 @@ _BAD_OPTIONS = (
   ('dclaw', 'turn_random_dynamics', {'privileged': 1}, 'privileged'),
   ('dkitty', 'walk_fixed', {'terrain': 'False'}, 'terrain must be'),
   ('dkitty', 'stand_fixed', {'settle_substeps': 10.5}, 'settle_substeps'),
+  ('dclaw', 'pose_fixed', {'initial_pose': [10.0] * 9}, 'initial_pose: joint'),
+  ('dclaw', 'pose_fixed', {'goal_pose': [0.1] * 3}, 'goal_pose needs 9'),
+  ('dkitty', 'stand_fixed', {'initial_pose': [5.0] * 12}, 'initial_pose:'),
 )
 
 

@@ -601,6 +601,28 @@ class RobelTask(composer.Task):
       f'{type(self).__name__} has no scripted reference controller'
     )
 
+  def checked_pose(self, physics, name: str, pose) -> np.ndarray:
+    """`pose` (an option's value this episode) as joint angles, rad.
+
+    Raises:
+      ValueError: naming `name`, for a pose of the wrong size or a joint
+        outside its action range (before the robot moves).
+    """
+    pose = np.asarray(pose, dtype=float)
+    low, high = physics.bind(self._robot.actuators).ctrlrange.T
+    if pose.shape != low.shape:
+      raise ValueError(
+        f'{name} needs {low.size} joint angles, got shape {pose.shape}'
+      )
+    outside = np.flatnonzero(~((pose >= low) & (pose <= high)))
+    if outside.size:
+      i = outside[0]
+      raise ValueError(
+        f'{name}: joint {self._robot.joints[i].name} at {pose[i]} rad lies '
+        f'outside its action range [{low[i]:+.3f}, {high[i]:+.3f}]'
+      )
+    return pose
+
   def normalize_joint_targets(self, targets: np.ndarray) -> np.ndarray:
     """Maps joint angles (rad) to actions in [-1, 1]; inverse of the map."""
     return self._action_map.normalize(targets)

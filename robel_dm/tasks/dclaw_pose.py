@@ -160,8 +160,16 @@ class PoseTask(base.RobelTask):
     return self.normalize_joint_targets(qpos + step)
 
   def _initialize_state(self, physics, random_state) -> None:
-    pose_a = variation.evaluate(self._initial_pose, random_state=random_state)
-    pose_b = variation.evaluate(self._goal_pose, random_state=random_state)
+    pose_a = self.checked_pose(
+      physics,
+      'initial_pose',
+      variation.evaluate(self._initial_pose, random_state=random_state),
+    )
+    pose_b = self.checked_pose(
+      physics,
+      'goal_pose',
+      variation.evaluate(self._goal_pose, random_state=random_state),
+    )
     if self._goal_frequency is None:
       initial = pose_a
       self._goal_center[:] = pose_b

@@ -137,7 +137,11 @@ class StandTask(base.RobelTask):
       action_map = self._action_map
       pose = random_state.uniform(action_map.low, action_map.high)
     else:
-      pose = variation.evaluate(self._initial_pose, random_state=random_state)
+      pose = self.checked_pose(
+        physics,
+        'initial_pose',
+        variation.evaluate(self._initial_pose, random_state=random_state),
+      )
     self._kitty.reset(physics, random_state, pose)
     # Let the robot settle on its legs, then start the clock at 0.
     # (dm_control's step(0) would still finish one pending step.)
