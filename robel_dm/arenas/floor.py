@@ -51,15 +51,13 @@ class KittyFloor(composer.Arena):
   def has_terrain(self) -> bool:
     return self._terrain
 
-  def add_marker(
-    self, name: str, size, rgba, site_type: str = 'cylinder'
-  ) -> mjcf.Element:
+  def add_marker(self, name: str, size, rgba) -> mjcf.Element:
     """Adds a non-colliding marker on a mocap body and returns the body.
 
     Tasks move markers by writing `data.mocap_pos`, never the model.
     """
     body = self._mjcf_root.worldbody.add('body', name=name, mocap=True)
-    body.add('site', name=name, type=site_type, size=size, rgba=rgba, group=0)
+    body.add('site', name=name, type='cylinder', size=size, rgba=rgba, group=0)
     return body
 
   def after_compile(self, physics, random_state) -> None:

@@ -30,7 +30,7 @@ class Connection:
     auxiliary_joints: auxiliary motor name -> the model joint it measures
       (None for the guide, which measures none).
     joint_limits: goal limits from the robot configuration (joint name ->
-      (low, high)), or None.
+      (low, high); empty where it sets none).
     reset: the reset procedure (see `hardware.resets`).
     torso_source: a free-floating robot's torso pose, or None.
     tracker: the motion tracker, or None; recalibrated after every reset.
@@ -44,7 +44,7 @@ class Connection:
   robot_config: config_lib.RobotConfig
   clock: clock_lib.Clock
   auxiliary_joints: dict[str, object | None]
-  joint_limits: dict[str, tuple[float, float]] | None
+  joint_limits: dict[str, tuple[float, float]]
   reset: Callable[..., None]
   torso_source: TorsoSource | None = None
   tracker: TorsoTracker | None = None

@@ -25,7 +25,6 @@ import numpy as np
 
 from robel_dm.hardware import clock as clock_lib
 from robel_dm.hardware import connection as connection_lib
-from robel_dm.hardware import resets
 from robel_dm.hardware import robot as robot_lib
 from robel_dm.hardware import timing as timing_lib
 from robel_dm.hardware.dynamixel import client as dynamixel
@@ -91,7 +90,7 @@ class HardwarePhysics(mjcf.Physics):
     torso_source = connection.torso_source
     self._robot = robot
     self._clock = connection.clock
-    self._reset = connection.reset or resets.MoveReset()
+    self._reset = connection.reset
     self._tracker = connection.tracker
     self._period = control_timestep
     # The achieved period and late steps of every control step.
