@@ -295,16 +295,26 @@ class NumpyPolicy:
     only a simulation knows): a ceiling, not a policy for a robot."""
     return bool(self.metadata.get('task_kwargs', {}).get('privileged'))
 
-  def task_kwargs_for(self, task_kwargs: dict | None) -> dict:
+  def task_kwargs_for(
+    self, task_kwargs: dict | None, log=None, doing: str = 'running'
+  ) -> dict:
     """`task_kwargs` with the policy's action map and privileged
     observation where they name none: a policy acts through the map it
-    learned with, on the observation it learned from."""
-    task_kwargs = dict(task_kwargs or {})
+    learned with, on the observation it learned from. `log`, if given, is
+    told each option adopted ('... : {doing} with it')."""
+    given = dict(task_kwargs or {})
+    task_kwargs = dict(given)
     if self.action_map != 'robel':
       task_kwargs.setdefault('action_map', self.action_map)
     if self.privileged:
       task_kwargs.setdefault(
         'privileged', self.metadata['task_kwargs']['privileged']
+      )
+    adopted = [option for option in task_kwargs if option not in given]
+    for option in adopted if log is not None else ():
+      log(
+        f'the policy learned with task option {option}='
+        f'{task_kwargs[option]}: {doing} with it'
       )
     return task_kwargs
 

@@ -101,12 +101,7 @@ def _with_policy_options(task_kwargs: dict) -> dict:
   )
   if checked is None:
     return task_kwargs
-  adopted = checked.task_kwargs_for(task_kwargs)
-  for option, value in adopted.items():
-    if option not in task_kwargs:
-      print(f'the policy learned with task option {option}={value}: '
-            'viewing with it')  # fmt: skip
-  return adopted
+  return checked.task_kwargs_for(task_kwargs, print, 'viewing')
 
 
 def run() -> None:

@@ -236,17 +236,9 @@ def _with_policy_task_options(
   task_kwargs_for = getattr(checked, 'task_kwargs_for', None)
   if task_kwargs_for is None:
     return config
-  task_kwargs = task_kwargs_for(config.task_kwargs)
+  task_kwargs = task_kwargs_for(config.task_kwargs, config.log, 'evaluating')
   if task_kwargs == dict(config.task_kwargs or {}):
     return config
-  if config.log is not None:
-    given = config.task_kwargs or {}
-    for option, value in task_kwargs.items():
-      if option not in given:
-        config.log(
-          f'the policy learned with task option {option}={value}: '
-          'evaluating with it'
-        )
   return dataclasses.replace(config, task_kwargs=task_kwargs)
 
 
