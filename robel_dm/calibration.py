@@ -44,6 +44,8 @@ from typing import Any
 
 from dm_control import mjcf
 
+from robel_dm import numeric
+
 FORMAT = 'robel_dm-calibration'
 VERSION = 1
 # The fitted joint parameters, in file order.
@@ -103,7 +105,7 @@ class Calibration:
 
 
 def _number(value, where: str, minimum: float, strict: bool) -> float:
-  if isinstance(value, bool) or not isinstance(value, int | float):
+  if not numeric.is_real(value):
     raise CalibrationError(f'{where} must be a number, got {value!r}')
   value = float(value)
   if not math.isfinite(value) or value < minimum or (strict and value == 0):

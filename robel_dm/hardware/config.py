@@ -34,7 +34,7 @@ import os
 import pathlib
 from typing import Any
 
-from robel_dm import robots
+from robel_dm import numeric, robots
 from robel_dm.hardware.dynamixel import control_table
 
 _MAX_ID = 252
@@ -145,15 +145,6 @@ def _require(data: dict, key: str, where: str):
   return data[key]
 
 
-def _is_number(value: Any) -> bool:
-  """A finite JSON number (not a boolean, which Python counts as one)."""
-  return (
-    isinstance(value, (int, float))
-    and not isinstance(value, bool)
-    and math.isfinite(value)
-  )
-
-
 def _unknown(data: dict, known: tuple[str, ...], where: str) -> None:
   unknown = sorted(set(data) - set(known))
   if unknown:
@@ -171,21 +162,17 @@ def _motor(data: Any, where: str) -> Motor:
   where = f'{where} ({name})'
   _unknown(data, _MOTOR_FIELDS, where)
   motor_id = _require(data, 'id', where)
-  if (
-    isinstance(motor_id, bool)
-    or not isinstance(motor_id, int)
-    or not 0 <= motor_id <= _MAX_ID
-  ):
+  if not numeric.is_integer(motor_id) or not 0 <= motor_id <= _MAX_ID:
     raise ConfigError(
       f'{where}: id must be an integer 0..252, got {motor_id!r}'
     )
   scale = data.get('scale', 1)
-  if not _is_number(scale) or scale not in (1, -1):
+  if not numeric.is_finite(scale) or scale not in (1, -1):
     raise ConfigError(f'{where}: scale must be 1 or -1, got {scale!r}')
   if 'offset' in data and 'offset_pi' in data:
     raise ConfigError(f'{where}: give "offset" or "offset_pi"')
   offset = data.get('offset', data.get('offset_pi', 0.0))
-  if not _is_number(offset):
+  if not numeric.is_finite(offset):
     raise ConfigError(
       f'{where}: offset must be a finite number, got {offset!r}'
     )
@@ -241,8 +228,8 @@ def from_dict(data: dict, source: str = '<memory>') -> RobotConfig:
   if duplicates:
     raise ConfigError(f'{source}: motor IDs used twice: {duplicates}')
   baud_rate = data.get('baud_rate', control_table.DEFAULT_BAUD_RATE)
-  if baud_rate not in control_table.BAUD_RATES.values() or isinstance(
-    baud_rate, bool
+  if not numeric.is_integer(baud_rate) or (
+    baud_rate not in control_table.BAUD_RATES.values()
   ):
     raise ConfigError(
       f'{source}: baud_rate {baud_rate!r} is not a Dynamixel rate '
@@ -278,7 +265,7 @@ def _groups(data: Any, ids: list[int], source: str) -> dict:
       raise ConfigError(
         f'{source}: group {name!r} must be a list of motor IDs, got {members!r}'
       )
-    unknown = [i for i in members if i not in ids or isinstance(i, bool)]
+    unknown = [i for i in members if not numeric.is_integer(i) or i not in ids]
     if unknown:
       raise ConfigError(f'{source}: group {name!r} has unknown IDs {unknown}')
     groups[name] = tuple(members)
@@ -297,7 +284,7 @@ def _limits(data: Any, joints: tuple[Motor, ...], source: str) -> dict:
     if (
       not isinstance(bounds, list)
       or len(bounds) != 2
-      or not all(map(_is_number, bounds))
+      or not all(map(numeric.is_finite, bounds))
       or bounds[0] >= bounds[1]
     ):
       raise ConfigError(
@@ -314,7 +301,7 @@ def _health(data: Any, source: str) -> HealthLimits:
     raise ConfigError(f'{source}: health must be an object {_HEALTH_FIELDS}')
   _unknown(data, _HEALTH_FIELDS, f'{source}: health')
   for name, value in data.items():
-    if not _is_number(value) or value <= 0:
+    if not numeric.is_finite(value) or value <= 0:
       raise ConfigError(
         f'{source}: health {name} must be a positive number, got {value!r}'
       )

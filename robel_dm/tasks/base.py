@@ -19,7 +19,6 @@ import collections
 from collections.abc import Callable, Mapping
 import dataclasses
 import math
-import numbers
 from typing import Any
 
 from dm_control import composer, mjcf
@@ -27,7 +26,7 @@ from dm_control.composer.observation import observable
 from dm_env import specs
 import numpy as np
 
-from robel_dm import constants, environment, randomization
+from robel_dm import constants, environment, numeric, randomization
 from robel_dm import robot_io as robot_io_lib
 from robel_dm.entities import servo_robot
 
@@ -84,15 +83,10 @@ def _check_reward_values(values: Mapping) -> None:
   """Raises ValueError naming a reward constant that is not a finite
   number."""
   for name, value in values.items():
-    if not is_real(value):
+    if not numeric.is_real(value):
       raise ValueError(f'reward.{name} must be a number, got {value!r}')
     if not math.isfinite(value):
       raise ValueError(f'reward.{name} must be finite, got {value}')
-
-
-def is_real(value: Any) -> bool:
-  """A real number, not a bool (which Python counts as one)."""
-  return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 def mocap_index(physics, body: mjcf.Element) -> int:
@@ -214,7 +208,7 @@ def _check_options(options: TaskOptions) -> None:
       f'{options.dynamics!r}'
     )
   noise = options.observation_noise
-  if not is_real(noise) or not math.isfinite(noise) or noise < 0:
+  if not numeric.is_finite(noise) or noise < 0:
     raise ValueError(
       f'observation_noise must be a finite number >= 0, got {noise!r}'
     )
@@ -287,7 +281,7 @@ class RobelTask(composer.Task):
     action_bounds = options.action_bounds
     observation_noise = options.observation_noise
     episode_steps = scene.episode_steps
-    if not isinstance(episode_steps, int) or isinstance(episode_steps, bool):
+    if not numeric.is_integer(episode_steps):
       raise ValueError(f'episode_steps must be an integer: {episode_steps!r}')
     if episode_steps <= 0:
       raise ValueError(f'episode_steps must be positive: {episode_steps}')

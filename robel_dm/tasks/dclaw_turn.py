@@ -10,7 +10,7 @@ from dm_control.composer import variation
 from dm_control.composer.variation import distributions
 import numpy as np
 
-from robel_dm import constants, geometry, randomization, registry
+from robel_dm import constants, geometry, numeric, randomization, registry
 from robel_dm.arenas import station
 from robel_dm.entities import dclaw
 from robel_dm.entities import valve as valve_lib
@@ -55,11 +55,7 @@ _RANDOM_GOAL_ANGLE = distributions.Uniform(2 * np.pi / 3, 4 * np.pi / 3)
 
 
 def _check_threshold(success_threshold) -> None:
-  if not (
-    base.is_real(success_threshold)
-    and math.isfinite(success_threshold)
-    and success_threshold > 0
-  ):
+  if not (numeric.is_finite(success_threshold) and success_threshold > 0):
     raise ValueError(
       'success_threshold must be a positive number of rad, got '
       f'{success_threshold!r}'

@@ -8,7 +8,7 @@ import dataclasses
 from dm_control.composer import variation
 import numpy as np
 
-from robel_dm import constants, geometry, randomization, registry
+from robel_dm import constants, geometry, numeric, randomization, registry
 from robel_dm.entities import dkitty
 from robel_dm.tasks import base, dkitty_common
 
@@ -88,11 +88,7 @@ class StandTask(base.RobelTask):
         `observation_noise`, `observation_keys`, `action_bounds`, `reward`).
     """
     self._kitty = dkitty_common.KittyParts(terrain=terrain, upright=_UPRIGHT)
-    if (
-      not isinstance(settle_substeps, int)
-      or isinstance(settle_substeps, bool)
-      or settle_substeps < 0
-    ):
+    if not numeric.is_integer(settle_substeps) or settle_substeps < 0:
       raise ValueError(
         f'settle_substeps must be an integer >= 0, got {settle_substeps!r}'
       )

@@ -11,12 +11,10 @@ The reward is the negative distance between the targets and the joints, so
 a recording shows how well the servos track.
 """
 
-import math
-
 from dm_control import composer
 import numpy as np
 
-from robel_dm import geometry
+from robel_dm import geometry, numeric
 from robel_dm.arenas import floor, station
 from robel_dm.entities import dclaw, dkitty
 from robel_dm.tasks import base
@@ -71,9 +69,7 @@ class JointExcitation(base.RobelTask):
     """
     if domain not in CENTER_POSE:
       raise ValueError(f'no excitation for {domain!r}; one of {DOMAINS}')
-    if not (
-      base.is_real(duration) and math.isfinite(duration) and duration > 0
-    ):
+    if not (numeric.is_finite(duration) and duration > 0):
       raise ValueError(
         f'duration must be a positive number of s, got {duration!r}'
       )
