@@ -695,9 +695,8 @@ def _new_model(config: RunConfig, vec_env, data):
       config.agent, vec_env, config.seed, config.layers, buffer_size
     )
   if data is not None:
-    if config.num_envs != 1:
-      raise ValueError('demonstrations and recordings need --num_envs=1')
-    # The buffer's size (run steps + these) keeps them for the run.
+    # One environment (RunConfig.check); the buffer's size (run steps +
+    # these) keeps them for the run.
     replay.store(model.replay_buffer, data)
   return model
 
