@@ -436,6 +436,31 @@ def test_without_the_learn_extra_train_says_what_to_install(tmp_path, missing):
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize(
+  'flag, partner',
+  [('stop_streak=3', 'stop_at_success'), ('demo_episodes=5', 'demos')],
+)
+def test_train_refuses_a_flag_without_the_one_it_works_with(
+  tmp_path, flag, partner
+):
+  import subprocess  # noqa: PLC0415
+  import sys  # noqa: PLC0415
+
+  output = tmp_path / 'run'
+  result = subprocess.run(
+    [sys.executable, '-m', 'robel_dm.commands.train', f'--output_dir={output}',
+     '--steps=8', f'--{flag}'],
+    capture_output=True, text=True, timeout=120,
+  )  # fmt: skip
+  assert result.returncode == 2, result.stderr
+  name = flag.split('=')[0]
+  assert result.stderr.strip().splitlines() == [
+    f'error: --{name} needs --{partner} (alone it does nothing)'
+  ]
+  assert not output.exists()
+
+
+@pytest.mark.slow
 def test_resume_refuses_a_run_built_with_other_agent_settings(tmp_path):
   config = _config(steps=16, eval_every=16)
   learning.train(config, tmp_path, **QUIET)

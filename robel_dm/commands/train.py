@@ -163,6 +163,9 @@ _ROBOT_RUN_FLAGS = ('dynamics', 'hours', 'max_violations', 'reset_attempts',
                     'updates_per_step', 'wait_for_learner')  # fmt: skip
 
 
+# Flags that only mean something beside another one.
+_NEEDS_PARTNER = {'stop_streak': 'stop_at_success', 'demo_episodes': 'demos'}
+
 FLAGS = flags.FLAGS
 
 
@@ -175,6 +178,7 @@ def main(argv):
   from robel_dm.evaluation import cli  # noqa: PLC0415
 
   try:
+    _check_partners()
     config = _run_config()
     log = lambda line: print(line, flush=True)  # noqa: E731
     robot_options = cli.robot_options(FLAGS)
@@ -217,6 +221,13 @@ def _algo() -> str:
   if FLAGS['algo'].present or FLAGS.device_path is None:
     return FLAGS.algo
   return agents.ROBOT_DEFAULT
+
+
+def _check_partners() -> None:
+  """Raises ValueError for a flag given without the one it works with."""
+  for name, partner in _NEEDS_PARTNER.items():
+    if FLAGS[name].present and FLAGS[partner].value in (None, []):
+      raise ValueError(f'--{name} needs --{partner} (alone it does nothing)')
 
 
 def _run_config():
