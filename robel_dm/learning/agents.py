@@ -215,7 +215,7 @@ AGENTS: dict[str, Agent] = {
       'robel_dm.learning.imitation (JAX): mean squared error on the '
       'demonstrated actions',
       (256, 256),
-      {'epochs': 300, 'batch_size': 256, 'learning_rate': 1e-3},
+      {'batch_size': 256, 'learning_rate': 1e-3},
       needs_demos=True,
       library=IMITATION_JAX,
     ),
