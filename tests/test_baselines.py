@@ -1,9 +1,11 @@
 """The baseline table: its plan, runs, records, report and Ray fan-out."""
 
+import contextlib
 import copy
 import itertools
 import json
 import shutil
+import types
 
 import numpy as np
 import pytest
@@ -12,7 +14,7 @@ pytest.importorskip('sbx', reason='needs robel_dm[learn]')
 
 from robel_dm import suite  # noqa: E402
 from robel_dm.commands import baselines as cli  # noqa: E402
-from robel_dm.evaluation import task_args  # noqa: E402
+from robel_dm.evaluation import task_args, workers  # noqa: E402
 from robel_dm.learning import agents, baselines, training  # noqa: E402
 from robel_dm.learning.baselines import (  # noqa: E402
   demonstrations,
@@ -786,6 +788,49 @@ def test_the_table_fans_out_over_ray(sandbox):
   assert sorted(r['task'] for r in records) == ['pose_fixed', 'pose_random']
   rows = json.loads(baselines.RESULTS.read_text())
   assert len(rows) == 2
+
+
+class _LastFirstRay:
+  """Ray's calls, run in this process: a task runs when waited for, the
+  last submitted first (so a run is tried before the run it starts from)."""
+
+  class _Ref:
+    def __init__(self, call):
+      self.call = call
+
+  def remote(self, num_cpus):
+    del num_cpus
+    return lambda function: types.SimpleNamespace(
+      remote=lambda *args: self._Ref(lambda: function(*args))
+    )
+
+  def wait(self, refs):
+    return [refs[-1]], refs[:-1]
+
+  def get(self, ref):
+    return ref.call()
+
+
+def test_ray_submits_a_waiting_run_again_once_its_source_ends(monkeypatch):
+  source = baselines.Run('dclaw', 'pose_random', 'sac', 0)
+  warm = baselines.Run('dclaw', 'pose_random_dynamics', 'sac_warm', 0)
+  made, merged = [], []
+
+  def make_run(run, log):
+    if run == warm and source not in made:
+      return None  # Waits for the run it starts from.
+    made.append(run)
+    return {'name': run.name}
+
+  monkeypatch.setattr(scheduling, 'runs_to_make', lambda _: [source, warm])
+  monkeypatch.setattr(scheduling, 'make_run', make_run)
+  monkeypatch.setattr(scheduling, 'merge_results', merged.extend)
+  monkeypatch.setattr(
+    workers, 'ray_session', lambda _: contextlib.nullcontext(_LastFirstRay())
+  )
+  records = scheduling.train_ray('local', None)
+  assert made == [source, warm]
+  assert records == merged == [{'name': source.name}, {'name': warm.name}]
 
 
 def test_the_figures_and_tables_are_made_from_the_current_records():

@@ -103,32 +103,35 @@ def runs_to_make(pattern: str | None) -> list[Run]:
 def train_ray(address: str, pattern: str | None) -> list[dict]:
   """Every selected run as a Ray task (one CPU each); the records merged
   into docs/baselines.json as they end. A run that waits for another (its
-  demonstrations' source, or the run it starts from) is named and left for
-  the next call. `address` 'local' starts a Ray
-  instance on this machine for the call."""
+  demonstrations' source, or the run it starts from) is submitted again
+  whenever a run ends, and named if it still waits when none is left.
+  `address` 'local' starts a Ray instance on this machine for the call."""
   from robel_dm.evaluation import workers  # noqa: PLC0415
 
-  chosen = runs_to_make(pattern)
   with workers.ray_session(address) as ray:
     remote = ray.remote(num_cpus=1)(_remote_train_run)
     settings = baselines.PLAN, baselines.RUNS_DIR
-    pending = {remote.remote(run, *settings): run for run in chosen}
-    records = []
+    pending = {
+      remote.remote(run, *settings): run for run in runs_to_make(pattern)
+    }
+    records, waiting = [], []
     while pending:
       ready, _ = ray.wait(list(pending))
       for ref in ready:
         run = pending.pop(ref)
         result = ray.get(ref)
-        if result is not None:
-          records.append(result)
-          merge_results([result])
-        print(
-          f'{run.name}: '
-          + (
-            'done'
-            if result
-            else 'waits (for demonstrations or the run it starts from; '
-            'call again when that is done)'
-          )
-        )
+        if result is None:
+          waiting.append(run)
+          continue
+        records.append(result)
+        merge_results([result])
+        print(f'{run.name}: done')
+        # What a waiting run waits for may be this one.
+        pending.update({remote.remote(w, *settings): w for w in waiting})
+        waiting = []
+    for run in waiting:
+      print(
+        f'{run.name}: waits (for demonstrations or the run it starts from; '
+        'call again when that is done)'
+      )
     return records
