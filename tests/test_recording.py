@@ -242,3 +242,53 @@ def test_motor_health_and_faults_are_recorded_on_the_virtual_bus(tmp_path):
   assert episode.metadata['complete'] is False
   assert 'hardware error' in episode.metadata['error']
   assert '31' in episode.metadata['error']  # The motor is named.
+
+
+class _FaultingEnv:
+  """A simulated D'Claw whose steps fail as a motor fault or Ctrl-C would,
+  and whose close() (a robot's release) is logged."""
+
+  def __init__(self, events):
+    self._env = suite.load('dclaw', 'pose_fixed')
+    self._events = events
+
+  def __getattr__(self, name):
+    return getattr(self._env, name)
+
+  def step(self, action):
+    raise KeyboardInterrupt
+
+  def close(self):
+    self._events.append('released')
+    self._env.close()
+
+
+@pytest.mark.parametrize('finishing_fails', [False, True])
+def test_a_fault_releases_the_robot_before_its_episode_is_written(
+  tmp_path, monkeypatch, finishing_fails
+):
+  from robel_dm.recording import format as format_lib  # noqa: PLC0415
+
+  events, finish = [], format_lib.EpisodeWriter.finish
+
+  def logged_finish(writer, metadata):
+    events.append('written')
+    if finishing_fails:
+      raise recording.RecordingError('the disk is full')
+    finish(writer, metadata)
+
+  monkeypatch.setattr(format_lib.EpisodeWriter, 'finish', logged_finish)
+  env = recording.Recorder(_FaultingEnv(events), tmp_path)
+  env.reset()
+  # The caller's `finally` closes; the fault, not the recording, propagates.
+  with pytest.raises(KeyboardInterrupt):
+    try:
+      env.step(np.zeros(9))
+    finally:
+      assert events == []  # Nothing written while the robot is held.
+      env.close()
+  assert events == ['released', 'written']
+  if not finishing_fails:
+    (episode,) = recording.read(tmp_path)
+    assert episode.metadata['complete'] is False
+    assert episode.metadata['error'] == 'KeyboardInterrupt: '

@@ -1,6 +1,7 @@
 """A dm_env wrapper that records every timestep of a robel_dm environment."""
 
 import json
+import logging
 import pathlib
 import time
 from typing import Any
@@ -211,8 +212,9 @@ class Recorder(dm_env.Environment):
   """Records `env`'s timesteps into a recording directory as they happen.
 
   Everything else (specs, `physics`, `task`, attributes) passes through to
-  the wrapped environment. `close()` finishes the open episode (marked
-  incomplete if it had not ended) and closes the environment.
+  the wrapped environment. `close()` closes the environment (releasing a
+  robot) and then finishes the open episode (marked incomplete if it had
+  not ended).
   """
 
   def __init__(
@@ -272,6 +274,8 @@ class Recorder(dm_env.Environment):
         f'cannot write {self._directory}: {error}'
       ) from error
     self._writer: format_lib.EpisodeWriter | None = None
+    # What ended the episode under way, if a step raised.
+    self._ended_by: str | None = None
     self._frame = 0
     self._start_wall = 0.0
 
@@ -292,11 +296,15 @@ class Recorder(dm_env.Environment):
     return timestep
 
   def step(self, action) -> dm_env.TimeStep:
+    if self._ended_by is not None:  # Stepping on after a fault.
+      self._finish(complete=False)
     try:
       timestep = self._env.step(action)
     except BaseException as error:
-      # A fault (or Ctrl-C) ends the episode: say why in its metadata.
-      self._finish(complete=False, error=f'{type(error).__name__}: {error}')
+      # A fault (or Ctrl-C) ends the episode, and its metadata says why.
+      # The file is finished at close() (or the next reset, or step), after
+      # the caller has released the robot: writing it takes seconds.
+      self._ended_by = f'{type(error).__name__}: {error}'
       raise
     if timestep.first():  # dm_env resets on a step after the last one.
       self._finish(complete=False)
@@ -335,11 +343,22 @@ class Recorder(dm_env.Environment):
     return self._env.discount_spec()
 
   def close(self) -> None:
+    """Closes the environment (releasing a robot) first, then finishes the
+    episode under way."""
+    ended_by = self._ended_by
     try:
-      self._finish(complete=False)
-    finally:
-      self._lock.close()
       self._env.close()
+    finally:
+      try:
+        self._finish(complete=False)
+      except format_lib.RecordingError as error:
+        if ended_by is None:
+          raise
+        # The fault that ended the episode is the error to report: this
+        # one must not replace it while it propagates.
+        logging.error('%s (the episode ended by %s)', error, ended_by)
+      finally:
+        self._lock.close()
 
   # --- Recording -------------------------------------------------------------
 
@@ -395,8 +414,9 @@ class Recorder(dm_env.Environment):
       metadata['robot'] = self._robot_config
     return metadata
 
-  def _finish(self, complete: bool, error: str | None = None) -> None:
+  def _finish(self, complete: bool) -> None:
     writer, self._writer = self._writer, None
+    error, self._ended_by = self._ended_by, None
     if writer is None:
       return
     metadata = {
