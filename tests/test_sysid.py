@@ -199,6 +199,22 @@ def test_excitation_targets_stay_in_range_and_move_chosen_joints():
     )  # fmt: skip
   with pytest.raises(ValueError, match='signal must be one of'):
     excite.Excitation(signal='noise')
+  with pytest.raises(ValueError, match='duration must be positive'):
+    excite.Excitation(duration=float('inf'))
+  # An amplitude the range cannot hold is refused, not clipped: around the
+  # pose, MFJ21 has room for 0.503 of its half range, MFJ22 for 0.478.
+  for joints, fits in (('MFJ21',), True), (('MFJ21', 'MFJ22'), False):
+    arguments = (CLAW_JOINTS, task.center_pose, low, high, 0.02)
+    chosen = excite.Excitation(amplitude=0.5, joints=joints)
+    if fits:
+      sequence = excite.targets(chosen, *arguments)
+      assert np.all(sequence >= low + excite.RANGE_MARGIN)
+      assert np.all(sequence <= high - excite.RANGE_MARGIN)
+    else:
+      with pytest.raises(
+        ValueError, match='takes MFJ22 beyond .* at most 0.47'
+      ):
+        excite.targets(chosen, *arguments)
   env.close()
 
 
@@ -249,6 +265,14 @@ def test_command_line_errors_are_one_line(tmp_path):
     (['fit', '--domain=dclaw'], 'fit needs the recording directories'),
     (['excite', f'--record={tmp_path / "r"}', '--device_path='],
      '--device_path is empty'),
+    # A flag of the other command is refused, not ignored.
+    (['excite', f'--record={tmp_path / "r"}', '--output=cal.json'],
+     '--output is a flag of fit, not of excite'),
+    (['fit', str(tmp_path), '--dynamics=cal.json'],
+     '--dynamics is a flag of excite, not of fit'),
+    # Where the calibration goes is checked before the fit.
+    (['fit', str(tmp_path), f'--output={tmp_path / "no" / "cal.json"}'],
+     f'--output: no folder {tmp_path / "no"}'),
   ]  # fmt: skip
   for arguments, message in cases:
     done = subprocess.run(

@@ -17,7 +17,7 @@ import sys
 from absl import app, flags
 
 from robel_dm import calibration, command_help, provenance, recording, suite
-from robel_dm.evaluation import cli
+from robel_dm.evaluation import checks, cli
 from robel_dm.sysid import excite as excite_lib
 from robel_dm.sysid import fit as fit_lib
 from robel_dm.sysid import report
@@ -25,6 +25,13 @@ from robel_dm.tasks import excitation
 
 FLAGS = flags.FLAGS
 COMMANDS = ('excite', 'fit')
+# The flags each command reads (besides --domain); given to the other one,
+# a flag is refused rather than ignored.
+_FLAGS_OF = {
+  'excite': ('device_path', 'robot_config', 'dynamics', 'record', 'signal',
+             'duration', 'episodes', 'amplitude', 'joints', 'seed'),
+  'fit': ('output', 'parameters', 'fit_delay', 'currents'),
+}  # fmt: skip
 
 
 def _define_flags() -> None:
@@ -105,9 +112,18 @@ def excite() -> int:
   return 0
 
 
+def _check_flags_of(command: str) -> None:
+  """Raises ValueError for a flag of the other command."""
+  for other, names in _FLAGS_OF.items():
+    given = [name for name in names if FLAGS[name].present]
+    if other != command and given:
+      raise ValueError(f'--{given[0]} is a flag of {other}, not of {command}')
+
+
 def fit(directories: list[str]) -> int:
   if not directories:
     raise ValueError('fit needs the recording directories to fit')
+  checks.check_output(FLAGS.output)  # Before minutes of fitting.
   trajectories = []
   for directory in directories:
     trajectories += fit_lib.load_trajectories(directory, FLAGS.domain)
@@ -123,6 +139,8 @@ def fit(directories: list[str]) -> int:
   if FLAGS.output:
     calibration.save(result.calibration, FLAGS.output)
     print(f'wrote {FLAGS.output}')
+  else:
+    print('calibration not written (no --output)')
   return 0
 
 
@@ -131,12 +149,13 @@ def main(argv: list[str]) -> int:
     raise app.UsageError(f'the first argument must be one of {COMMANDS}')
   command, rest = argv[1], argv[2:]
   try:
+    _check_flags_of(command)
     if command == 'excite':
       if rest:
         raise app.UsageError(f'unexpected arguments: {rest}')
       return excite()
     return fit(rest)
-  except (ValueError, RuntimeError, ImportError) as error:
+  except (ValueError, RuntimeError, ImportError, OSError) as error:
     # Includes calibration, recording and robot errors, and a missing extra
     # (named); a robot's motors were released on the way out (see
     # robel_dm.hardware.shutdown).

@@ -242,6 +242,7 @@ class Recorder(dm_env.Environment):
         the robot moves and before anything is written.
     """
     self._env = env
+    self._action_size = env.action_spec().shape[0]
     self._directory = pathlib.Path(directory)
     self._metadata = dict(metadata or {})
     config = getattr(env, 'robot_config', None)  # A robot's motors.
@@ -369,14 +370,15 @@ class Recorder(dm_env.Environment):
   def _row(self, index: int, timestep: dm_env.TimeStep, action) -> dict:
     """The row of a timestep of episode `index`."""
     env = self._env
-    size = env.action_spec().shape[0]
     row = {
       'episode_index': index,
       'frame_index': self._frame,
       'timestamp': float(env.physics.data.time),
       'wall_time': time.time(),
       'step_type': int(timestep.step_type),
-      'action': ([float('nan')] * size if action is None else _value(action)),
+      'action': (
+        [float('nan')] * self._action_size if action is None else _value(action)
+      ),
       'joint_targets': _value(env.physics.bind(env.task.robot.actuators).ctrl),
       'next.reward': float('nan')
       if timestep.reward is None

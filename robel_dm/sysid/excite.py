@@ -19,6 +19,8 @@ from typing import Any
 import dm_env
 import numpy as np
 
+from robel_dm import numeric
+
 SIGNALS = ('steps', 'chirp')
 # Hold time of one level of the steps signal, s.
 STEP_HOLD = (0.2, 0.6)
@@ -51,7 +53,7 @@ class Excitation:
   def __post_init__(self):
     if self.signal not in SIGNALS:
       raise ValueError(f'signal must be one of {SIGNALS}, got {self.signal!r}')
-    if not self.duration > 0:
+    if not (numeric.is_finite(self.duration) and self.duration > 0):
       raise ValueError(f'duration must be positive, got {self.duration!r} s')
     if not 0 < self.amplitude <= 1:
       raise ValueError(f'amplitude must be in (0, 1], got {self.amplitude!r}')
@@ -80,10 +82,13 @@ def targets(
   if unknown:
     raise ValueError(f'unknown joints {unknown}; the robot has {joint_names}')
   mask = np.array([name in chosen for name in joint_names])
-  steps = max(1, round(excitation.duration / control_timestep))
-  time = np.arange(1, steps + 1) * control_timestep
   half_range = (high - low) / 2
   amplitude = excitation.amplitude * half_range
+  _check_room(
+    excitation.amplitude, amplitude, mask, joint_names, center, low, high
+  )
+  steps = max(1, round(excitation.duration / control_timestep))
+  time = np.arange(1, steps + 1) * control_timestep
   rng = np.random.default_rng(excitation.seed)
   if excitation.signal == 'steps':
     offsets = np.zeros((steps, len(joint_names)))
@@ -102,7 +107,22 @@ def targets(
     shifts = 2 * np.pi * np.arange(len(joint_names)) / len(joint_names)
     offsets = np.sin(phase[:, None] + shifts[None, :]) * amplitude
   offsets[:, ~mask] = 0.0
-  return np.clip(center + offsets, low + RANGE_MARGIN, high - RANGE_MARGIN)
+  return center + offsets
+
+
+def _check_room(fraction, amplitude, mask, joint_names, center, low, high):
+  """Raises ValueError if a chosen joint's targets would come within
+  RANGE_MARGIN of its action range's end (they would have to be clipped,
+  flattening the excitation)."""
+  room = np.minimum(center - low, high - center) - RANGE_MARGIN
+  too_far = mask & (amplitude > room)
+  if too_far.any():
+    fits = np.min(room[mask] / ((high - low)[mask] / 2))
+    raise ValueError(
+      f'amplitude {fraction} takes {joint_names[int(np.argmax(too_far))]} '
+      f'beyond its action range (less {RANGE_MARGIN} rad) from the pose; at '
+      f'most {np.floor(fits * 100) / 100:.2f} fits the joints excited'
+    )
 
 
 def run(
