@@ -55,3 +55,21 @@ def test_the_viewer_opens_and_runs_a_policy_on_a_virtual_display():
   finally:
     os.killpg(process.pid, signal.SIGKILL)  # xvfb-run, Xvfb and the viewer.
     process.communicate(timeout=20)
+
+
+@pytest.mark.slow
+def test_a_replay_that_is_no_recording_is_one_line(tmp_path):
+  # The display is taken as given: the policy fails before any window.
+  program = (
+    'import sys; from absl import app; from robel_dm.commands import view; '
+    'view.check_display = lambda: None; '
+    f"sys.argv = ['view', '--task=pose_fixed', '--policy=replay:{tmp_path}']; "
+    'view._define_flags(); app.run(view.main)'
+  )
+  result = subprocess.run(
+    [sys.executable, '-c', program], capture_output=True, text=True,
+    env={**os.environ, 'MUJOCO_GL': 'egl'}, timeout=120,
+  )  # fmt: skip
+  assert result.returncode == 2, result.stderr
+  (line,) = result.stderr.strip().splitlines()
+  assert line.startswith('error: ') and str(tmp_path) in line

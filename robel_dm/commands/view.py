@@ -85,7 +85,7 @@ def main(argv):
     from dm_control import viewer  # noqa: PLC0415 (needs a display)
 
     viewer.launch(env, policy=policy)
-  except ValueError as error:
+  except (ValueError, RuntimeError) as error:  # Recording errors too.
     print(f'error: {error}', file=sys.stderr)
     return 2
   return 0
