@@ -338,6 +338,22 @@ def test_export_refuses_an_unknown_version(recorded, tmp_path):
   assert not (tmp_path / 'x').exists()
 
 
+def test_export_refuses_a_missing_folder_and_leaves_nothing_on_failure(
+  recorded, tmp_path, monkeypatch
+):
+  with pytest.raises(recording.RecordingError, match='no folder'):
+    lerobot.export(recorded, tmp_path / 'typo' / 'out')
+  assert not (tmp_path / 'typo').exists()  # Not created on the way.
+
+  def disk_full(*args, **kwargs):
+    raise OSError(28, 'No space left on device')
+
+  monkeypatch.setattr(lerobot, '_dataset_info', disk_full)
+  with pytest.raises(recording.RecordingError, match='writing .* No space'):
+    lerobot.export(recorded, tmp_path / 'out')
+  assert list(tmp_path.iterdir()) == []  # No dataset, no staging folder.
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize(
   'domain, task', [('dclaw', 'turn_fixed'), ('dkitty', 'walk_fixed')]

@@ -283,8 +283,9 @@ def export(
     The dataset's meta/info.json.
 
   Raises:
-    RecordingError: if `output` exists, the recording has no complete
-      episode, or its episodes differ in columns.
+    RecordingError: if `output` exists or its folder does not, the
+      recording has no complete episode, its episodes differ in columns, or
+      writing fails (nothing is left at `output` then).
     ValueError: for another `version`.
   """
   if version not in VERSIONS:
@@ -296,13 +297,29 @@ def export(
   directory, output = pathlib.Path(directory), pathlib.Path(output)
   if output.exists():
     raise format_lib.RecordingError(f'{output} exists; export writes a new one')
+  if not output.parent.is_dir():
+    raise format_lib.RecordingError(f'no folder {output.parent} for {output}')
   info = _read_info(directory)
   episodes = _episodes(directory)
+  staging = output.with_name(output.name + '.partial')
+  shutil.rmtree(staging, ignore_errors=True)
+  try:
+    dataset_info = _stage(pa, staging, directory, info, episodes, version)
+    os.replace(staging, output)
+  except (OSError, KeyError, pa.ArrowException) as error:
+    # Disk full, no permission, an info.json without what it must hold.
+    shutil.rmtree(staging, ignore_errors=True)
+    raise format_lib.RecordingError(
+      f'writing {output} failed: {type(error).__name__}: {error}'
+    ) from error
+  return dataset_info
+
+
+def _stage(pa, staging, directory, info, episodes, version) -> dict[str, Any]:
+  """Writes the dataset into `staging`; returns its meta/info.json."""
   keys = info.get('observation_keys')
   description = _description(directory, episodes[0].metadata['episode_index'])
   columns = description.get('columns', {})
-  staging = output.with_name(output.name + '.partial')
-  shutil.rmtree(staging, ignore_errors=True)
   (staging / 'meta').mkdir(parents=True)
   features = {}
   converted = _converted(
@@ -328,7 +345,6 @@ def export(
       indent=1,
     )
   )
-  os.replace(staging, output)
   return dataset_info
 
 
