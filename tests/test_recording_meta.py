@@ -260,6 +260,15 @@ def test_a_replay_is_not_split_over_workers(tmp_path):
     )
 
 
+def test_a_lock_file_that_cannot_be_opened_is_a_recording_error(tmp_path):
+  from robel_dm.recording import format as format_lib  # noqa: PLC0415
+
+  format_lib.prepare(tmp_path)
+  (tmp_path / format_lib.LOCK).mkdir()  # Not a file: open() fails.
+  with pytest.raises(recording.RecordingError, match='cannot lock'):
+    format_lib.lock(tmp_path)
+
+
 @pytest.mark.slow
 def test_one_recorder_at_a_time_per_directory(tmp_path):
   # Two recorders would number their episodes alike and overwrite files.

@@ -200,10 +200,14 @@ def lock(directory: pathlib.Path) -> IO[str]:
     The lock file; close it to release the lock.
 
   Raises:
-    RecordingError: if another process records into the directory.
+    RecordingError: if another process records into the directory, or the
+      lock file cannot be opened (e.g. another user's).
   """
   path = directory / LOCK
-  handle = open(path, 'a+')  # noqa: SIM115 (held until the recorder closes)
+  try:
+    handle = open(path, 'a+')  # noqa: SIM115 (held until the recorder closes)
+  except OSError as error:
+    raise RecordingError(f'cannot lock {directory}: {error}') from error
   try:
     fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
   except OSError:

@@ -239,7 +239,7 @@ class Recorder(dm_env.Environment):
         another task or observation keys (the
         session's domain, task or task_kwargs, where both name them;
         checked again once the directory's lock is held); raised before
-        the robot moves and before anything is written.
+        the robot moves and before any episode is written.
     """
     self._env = env
     self._action_size = env.action_spec().shape[0]
