@@ -8,6 +8,10 @@ milliseconds around the calls that are expected to time out.
 """
 
 import random
+import select
+import signal
+import subprocess
+import sys
 
 import pytest
 
@@ -307,3 +311,35 @@ def test_build_bus_for_the_shipped_robots():
     virtual_bus.build_bus(config.default('dclaw'), driver='nonsense')
   with pytest.raises(ValueError):
     virtual.Bus(virtual.make_servos([1, 1]))
+
+
+_COMMAND = [sys.executable, '-m', 'robel_dm.commands.virtual_bus']
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize('stop', [signal.SIGINT, signal.SIGTERM])
+def test_the_command_serves_until_a_stop_signal_then_ends_cleanly(stop):
+  process = subprocess.Popen(
+    [*_COMMAND, '--robot=dclaw', '--driver=ideal'],
+    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+  )  # fmt: skip
+  try:
+    ready, _, _ = select.select([process.stdout], [], [], 120)
+    assert ready, 'the virtual bus printed no device path'
+    assert process.stdout.readline().startswith('/dev/pts/')
+    process.send_signal(stop)
+    assert process.wait(60) == 0, process.stderr.read()
+  finally:
+    if process.poll() is None:
+      process.kill()
+      process.wait()
+
+
+@pytest.mark.slow
+def test_the_command_refuses_a_model_it_does_not_know():
+  result = subprocess.run(
+    [*_COMMAND, '--driver=ideal', '--model_number=1060'],
+    capture_output=True, text=True, timeout=120,
+  )  # fmt: skip
+  assert result.returncode != 0
+  assert '--model_number=1060' in result.stderr and '1030' in result.stderr

@@ -21,10 +21,10 @@ import logging
 import math
 import signal
 import sys
-import threading
 
 from robel_dm import robots
 from robel_dm.hardware import config
+from robel_dm.hardware.virtual import registers
 from robel_dm.hardware.virtual.bus import (
   Bus,
   Driver,
@@ -94,8 +94,11 @@ def _define_flags():
   from absl import flags  # Command line only.
 
   return {
-    'robot': flags.DEFINE_string(
-      'robot', 'dclaw', 'Robot whose shipped configuration to serve.'
+    'robot': flags.DEFINE_enum(
+      'robot',
+      'dclaw',
+      sorted(robots.ROBOTS),
+      'Robot whose shipped configuration to serve.',
     ),
     'config': flags.DEFINE_string(
       'config', None, 'Robot configuration file (JSON); overrides --robot.'
@@ -107,8 +110,11 @@ def _define_flags():
       'What moves the motors: sim (a MuJoCo simulation of the robot, in real '
       'time) or ideal (every motor at its goal at once).',
     ),
-    'model_number': flags.DEFINE_integer(
-      'model_number', DEFAULT_MODEL_NUMBER, 'Model number of every servo.'
+    'model_number': flags.DEFINE_enum(
+      'model_number',
+      str(DEFAULT_MODEL_NUMBER),
+      [str(number) for number in registers.MODEL_DEFAULTS],
+      "Model number of every servo (1030: XM430-W210, ROBEL's).",
     ),
     'dynamics': flags.DEFINE_string(
       'dynamics',
@@ -120,6 +126,12 @@ def _define_flags():
 
 
 def _serve_until_signalled(flag_values) -> int:
+  # SIGINT and SIGTERM wait, blocked in this thread and in the server's
+  # (which inherits the mask), until `sigwait` takes one: a handler could
+  # interrupt the very lock it needs, and one arriving while the scene loads
+  # ends the program cleanly once it has.
+  stop_signals = {signal.SIGINT, signal.SIGTERM}
+  signal.pthread_sigmask(signal.SIG_BLOCK, stop_signals)
   try:
     if flag_values['config'].value:
       robot_config = config.load(flag_values['config'].value)
@@ -132,15 +144,12 @@ def _serve_until_signalled(flag_values) -> int:
     bus = build_bus(
       robot_config,
       flag_values['driver'].value,
-      flag_values['model_number'].value,
+      int(flag_values['model_number'].value),
       flag_values['dynamics'].value,
     )
   except (ValueError, OSError) as error:
     print(f'error: {error}', file=sys.stderr)
     return 2
-  stop = threading.Event()
-  for signal_number in (signal.SIGINT, signal.SIGTERM):
-    signal.signal(signal_number, lambda *_: stop.set())
   with PtyBusServer(bus) as server:
     print(server.device_path, flush=True)
     logging.info(
@@ -149,7 +158,7 @@ def _serve_until_signalled(flag_values) -> int:
       robot_motor_ids(robot_config),
       server.device_path,
     )
-    stop.wait()
+    signal.sigwait(stop_signals)
   return 0
 
 
