@@ -405,10 +405,16 @@ def test_an_evaluation_cut_short_is_made_again_on_resume(tmp_path, monkeypatch):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize('to_group', [False, True])
-def test_sigterm_says_what_was_saved_and_how_to_resume(tmp_path, to_group):
-  # To the group (a service manager's stop, `kill -- -PGID`), the learner
-  # gets it too and must still save the networks when the actor asks.
+@pytest.mark.parametrize(
+  'signum, to_group',
+  [(signal.SIGTERM, False), (signal.SIGTERM, True), (signal.SIGQUIT, True)],
+)
+def test_a_stop_signal_says_what_was_saved_and_how_to_resume(
+  tmp_path, signum, to_group
+):
+  # To the group (a service manager's stop, `kill -- -PGID`, Ctrl-\ in a
+  # terminal), the learner gets it too and must still save the networks
+  # when the actor asks.
   root = pathlib.Path(__file__).resolve().parents[1]
   output = tmp_path / 'run'
   process = subprocess.Popen(
@@ -428,15 +434,16 @@ def test_sigterm_says_what_was_saved_and_how_to_resume(tmp_path, to_group):
       if line.startswith('episode 2 '):
         break
     if to_group:
-      os.killpg(process.pid, signal.SIGTERM)
+      os.killpg(process.pid, signum)
     else:
-      process.send_signal(signal.SIGTERM)
+      process.send_signal(signum)
     _, stderr = process.communicate(timeout=120)
   finally:
     if process.poll() is None:
       process.kill()
-  assert process.returncode == 128 + signal.SIGTERM
-  assert 'stopped by SIGTERM: the robot is released (torque off)' in stderr
+  assert process.returncode == 128 + signum
+  name = signal.Signals(signum).name
+  assert f'stopped by {name}: the robot is released (torque off)' in stderr
   assert f'in {output}; the same command with --resume continues' in stderr
   assert (output / train_lib.CHECKPOINT).is_file()
   # Saved at the stop, with the transitions it had (not only the empty

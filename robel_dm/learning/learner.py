@@ -99,11 +99,16 @@ def learner_main(setup: LearnerSetup, inbox, outbox, progress) -> None:
   update they allow, and its updates so far.
   """
   try:
-    # Ctrl-C, a closed terminal and a service manager's stop reach the
-    # whole process group: the actor decides when the learner stops (after
-    # saving), not the signal. Should the actor die, the learner notices
-    # (`_learn`) and ends.
-    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+    # Ctrl-C, Ctrl-\, a closed terminal and a service manager's stop reach
+    # the whole process group: the actor decides when the learner stops
+    # (after saving), not the signal. Should the actor die, the learner
+    # notices (`_learn`) and ends.
+    for signum in (
+      signal.SIGINT,
+      signal.SIGTERM,
+      signal.SIGHUP,
+      signal.SIGQUIT,
+    ):
       signal.signal(signum, signal.SIG_IGN)
     # The robot's control loop wins any contest for a CPU.
     os.nice(_LEARNER_NICENESS)
