@@ -68,14 +68,14 @@ def _define_learning_flags() -> None:
   flags.DEFINE_float(
     'safety_budget',
     None,
-    'Learn to keep safety violations per episode (all kinds) under this '
-    'many, with a learned price per violation (SAC agents).',
+    'Learn to keep safety violations per episode (all kinds) at most this '
+    'many, with a learned price per violation (sbx SAC agents).',
   )
   flags.DEFINE_string(
     'init_from',
     None,
-    "Start from another run's networks: its folder or checkpoint.zip (SAC "
-    'agents; e.g. the Random variant for RandomDynamics).',
+    "Start from another run's networks: its folder or checkpoint.zip (sbx "
+    'SAC agents; e.g. the Random variant for RandomDynamics).',
   )
   flags.DEFINE_list('hidden', [], "Hidden layer sizes (the agent's if empty).")
   flags.DEFINE_list(
