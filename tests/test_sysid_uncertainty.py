@@ -103,6 +103,9 @@ def test_a_well_determined_fit_raises_no_flag(well_determined):
   assert result.poorly_determined == {}
   assert result.not_identified == []
   assert report.warning_lines(result) == []
+  # Every row lines up with the header.
+  table = report.fit_table(result).splitlines()[:10]  # Header, 9 joints.
+  assert len({len(line) for line in table}) == 1
 
 
 def test_low_friction_is_flagged_as_poorly_determined():

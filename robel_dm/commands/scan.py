@@ -44,7 +44,7 @@ def _define_flags():
     'Serial device of the bus, e.g. /dev/ttyUSB0 (the flag the other '
     'commands give a robot by).',
   )
-  # The flag's first name, kept so that existing scripts run.
+  # --device, the flag's first name, still works.
   flags.DEFINE_alias('device', 'device_path')
   return {
     'device_path': device_path,

@@ -81,7 +81,7 @@ def _robot() -> suite.RobotOptions | None:
 def excite() -> int:
   if not FLAGS.record:
     raise ValueError('excite needs --record=DIR (where the episodes go)')
-  excitation = excite_lib.Excitation(
+  sequence = excite_lib.Excitation(
     signal=FLAGS.signal,
     duration=FLAGS.duration,
     amplitude=FLAGS.amplitude,
@@ -98,14 +98,14 @@ def excite() -> int:
   metadata = {
     'kind': 'excitation',
     'domain': FLAGS.domain,
-    'excitation': excitation.to_dict(),
+    'excitation': sequence.to_dict(),
     'device_path': FLAGS.device_path,
     'dynamics': FLAGS.dynamics,
   }
   try:
     # The recorder checks the directory before the robot moves.
     env = recording.Recorder(env, FLAGS.record, metadata=metadata)
-    steps = excite_lib.run(env, excitation, FLAGS.episodes)
+    steps = excite_lib.run(env, sequence, FLAGS.episodes)
   finally:
     env.close()
   print(f'recorded {FLAGS.episodes} episodes, {steps} steps in {FLAGS.record}')

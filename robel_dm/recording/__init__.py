@@ -28,14 +28,15 @@ first), `joint_targets` (what the actuators were told, rad), `next.reward`,
 `reward_terms.<name>`, and on a robot `motor.position`, `motor.velocity`,
 `motor.current` (joint units) with `motor.timestamp` (time.monotonic()), and
 `motor.temperature`, `motor.voltage`, `motor.hardware_error` with
-`motor.health_timestamp` (read every 10 steps). Parquet and Arrow files open
+`motor.health_timestamp` (read every `check_every` steps of the robot's
+health limits, 10 by default). Parquet and Arrow files open
 with pyarrow or pandas. Each file describes itself (schema metadata
 `robel_dm.columns`; `describe_columns(path)` reads it from the file alone):
 the domain and task, and every column's unit, shape per row and dimension
 names (joint names, motor IDs, axes). The rows are timesteps, not
 LeRobot's frames (the action taken from a frame's observation):
-`lerobot.export` writes a LeRobotDataset v2.1. docs/recording.md has the
-details.
+`lerobot.export` writes a LeRobotDataset (v3.0, or v2.1 for LeRobot 0.3).
+docs/recording.md has the details.
 
 Crash safety: steps are written to the episode's Arrow stream and flushed
 (and fsynced) at least every 0.5 s, by a background thread when no step
@@ -51,8 +52,6 @@ RecordingError (checked again under the directory's lock).
 """
 
 from robel_dm.recording.format import (  # noqa: F401
-  FORMAT,
-  MIN_FREE_BYTES,
   Episode,
   RecordingError,
 )

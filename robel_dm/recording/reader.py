@@ -51,8 +51,8 @@ def _check_schema(pa, schema) -> dict[str, Any] | None:
   description of its columns.
 
   Returns:
-    The description's `columns` (None for a file recorded before robel_dm
-    described them).
+    The description's `columns` (None for a file without one: the oldest
+    recordings).
 
   Raises:
     _DamageError: naming what does not fit.

@@ -123,7 +123,7 @@ def _sent_targets(targets: np.ndarray, metadata: dict) -> np.ndarray:
   `DynamixelClient.write_goal_positions`), the recording keeps the exact
   target. Up to half a tick (0.00077 rad) is a torque error of kp times
   that, the size of a small friction loss; replaying the exact targets
-  biased kp by 1-2% (benchmarks/sysid.py). Recordings without a robot
+  biases kp by 1-2% (benchmarks/sysid.py). Recordings without a robot
   configuration (simulation) are returned as they are."""
   motors = (metadata.get('robot') or {}).get('joints') or ()
   if len(motors) != targets.shape[1] or not all(

@@ -6,6 +6,10 @@ import numpy as np
 
 from robel_dm.sysid import fit
 
+# Characters of a parameter's column: a value, its flag and a ratio such as
+# ' 1.2x' (ratios up to 99.9x).
+_CELL = 15
+
 
 def _cell(result: fit.FitResult, joint: int, parameter: str) -> str:
   """A fitted value, '?' if not identified, and its ratio to the model's."""
@@ -14,14 +18,14 @@ def _cell(result: fit.FitResult, joint: int, parameter: str) -> str:
   flag = '?' if name in result.not_identified else ' '
   nominal = result.nominal[parameter][joint]
   if nominal <= 0:  # No ratio to a model value of zero (friction loss).
-    return f'{value:>13.4g}{flag}'
-  return f'{value:>10.4g}{flag}{value / nominal:>3.1f}x'
+    return f'{value:>{_CELL - 1}.4g}{flag}'
+  return f'{value:>{_CELL - 6}.4g}{flag}{value / nominal:>4.1f}x'
 
 
 def fit_table(result: fit.FitResult) -> str:
   """The fit as a table: per joint, the values and the angle error."""
   names = list(result.fitted)
-  header = f'{"joint":<8}' + ''.join(f'{n:>14}' for n in names)
+  header = f'{"joint":<8}' + ''.join(f'{n:>{_CELL}}' for n in names)
   header += f'{"RMS error (deg): model":>26}{"fit":>8}'
   lines = [header]
   for j, joint in enumerate(result.joint_names):

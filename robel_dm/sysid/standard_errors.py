@@ -13,13 +13,13 @@ from scipy import optimize, sparse
 # states and encoder, velocity and current readings leave errors that
 # persist for several steps (lag-1 autocorrelation about 0.6 on the virtual
 # bus), so the Gauss-Newton covariance s^2 (J^T J)^-1, which counts every
-# row as an independent sample, was too small (79% of true errors within 2
+# row as an independent sample, is too small (79% of true errors within 2
 # of its standard errors on 5 s D'Claw recordings). The fit uses the
 # autocorrelation-consistent sandwich (Newey-West): (J^T J)^-1 S
 # (J^T J)^-1, S summing the products of the steps' gradients J_t^T r_t up
 # to this far apart with Bartlett weights (1 - lag / (bandwidth + 1)),
 # within each episode, and a degrees-of-freedom correction
-# (`standard_errors`). Of 0.1, 0.2 and 0.3 s, 0.2 s came closest to a
+# (`standard_errors`). Of 0.1, 0.2 and 0.3 s, 0.2 s comes closest to a
 # Gaussian's coverage on 5 s recordings (docs/sysid.md).
 HAC_BANDWIDTH = 0.2  # s
 
