@@ -69,15 +69,6 @@ def _define_flags() -> None:
   )
 
 
-def _robot() -> suite.RobotOptions | None:
-  cli.check_device_path(FLAGS)
-  if not FLAGS.device_path:
-    if FLAGS.robot_config:
-      raise ValueError('--robot_config needs --device_path (a robot)')
-    return None
-  return suite.RobotOptions(FLAGS.device_path, robot_config=FLAGS.robot_config)
-
-
 def excite() -> int:
   if not FLAGS.record:
     raise ValueError('excite needs --record=DIR (where the episodes go)')
@@ -92,7 +83,7 @@ def excite() -> int:
     FLAGS.domain,
     FLAGS.duration,
     seed=FLAGS.seed,
-    robot=_robot(),
+    robot=cli.robot_options(FLAGS, names=('robot_config',)),
     dynamics=FLAGS.dynamics,
   )
   metadata = {

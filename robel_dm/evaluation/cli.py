@@ -168,18 +168,22 @@ def check_device_path(flag_values: flags.FlagValues) -> None:
     )
 
 
-def robot_options(flag_values: flags.FlagValues) -> suite.RobotOptions | None:
-  """The robot --device_path and ROBOT_OPTION_FLAGS name; None simulates.
+def robot_options(
+  flag_values: flags.FlagValues, names: tuple[str, ...] = ROBOT_OPTION_FLAGS
+) -> suite.RobotOptions | None:
+  """The robot --device_path and the flags `names` describe; None simulates.
 
   Args:
-    flag_values: parsed flags holding --device_path and ROBOT_OPTION_FLAGS
-      (this command's, or another command's that defines them).
+    flag_values: parsed flags holding --device_path and `names` (this
+      command's, or another command's that defines them).
+    names: the command's flags of `suite.RobotOptions` fields (by default
+      ROBOT_OPTION_FLAGS, all of them).
 
   Raises:
     ValueError: for one of those flags without --device_path, an empty
       --device_path, or a bad value.
   """
-  fields = {name: flag_values[name].value for name in ROBOT_OPTION_FLAGS}
+  fields = {name: flag_values[name].value for name in names}
   check_device_path(flag_values)
   if not flag_values['device_path'].value:
     given = [name for name, value in fields.items() if value is not None]
