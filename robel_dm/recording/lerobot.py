@@ -299,7 +299,7 @@ def export(
     raise format_lib.RecordingError(f'{output} exists; export writes a new one')
   if not output.parent.is_dir():
     raise format_lib.RecordingError(f'no folder {output.parent} for {output}')
-  info = _read_info(directory)
+  info = _required_info(directory)
   episodes = _episodes(directory)
   staging = output.with_name(output.name + '.partial')
   shutil.rmtree(staging, ignore_errors=True)
@@ -348,14 +348,18 @@ def _stage(pa, staging, directory, info, episodes, version) -> dict[str, Any]:
   return dataset_info
 
 
-def _read_info(directory: pathlib.Path) -> dict[str, Any]:
-  """The recording's info.json."""
+def _required_info(directory: pathlib.Path) -> dict[str, Any]:
+  """The recording's info.json, which an export needs (the reader goes on
+  without a damaged one; a dataset cannot)."""
   try:
-    return json.loads((directory / format_lib.INFO).read_text())
+    info = json.loads((directory / format_lib.INFO).read_text())
   except (OSError, ValueError) as error:
+    info = error
+  if not isinstance(info, dict):
     raise format_lib.RecordingError(
-      f'{directory} is not a readable recording ({format_lib.INFO}: {error})'
-    ) from error
+      f'{directory} is not a readable recording ({format_lib.INFO}: {info})'
+    )
+  return info
 
 
 def _dataset_info(
