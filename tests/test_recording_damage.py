@@ -141,6 +141,15 @@ def test_a_list_row_of_the_wrong_length_costs_only_its_episode(copy):
   assert done.returncode == 0, done.stderr
   assert done.stderr.splitlines() == [f'warning: {message}']
   assert f'3 episodes, {80 + 80 + STREAM_ROWS - 1} steps' in done.stdout
+  # So does the export, of the others (the complete ones).
+  out = directory.parent / f'{directory.name}_lerobot'
+  exported = subprocess.run(
+    [sys.executable, '-m', 'robel_dm.commands.recording', str(directory),
+     f'--lerobot={out}'],
+    capture_output=True, text=True, timeout=120, check=False,
+  )  # fmt: skip
+  assert exported.returncode == 0, exported.stderr
+  assert exported.stderr.splitlines() == [f'warning: {message}']
 
 
 @pytest.mark.slow

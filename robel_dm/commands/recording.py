@@ -13,12 +13,20 @@ from robel_dm.recording import format as format_lib
 from robel_dm.recording import lerobot, reader
 
 
-def _summary(directory: str) -> None:
+def _with_warnings_as_lines(function, *args):
+  """`function(*args)`, each warning it gives (a damaged file, named: see
+  reader.read) printed as one line."""
   with warnings.catch_warnings(record=True) as caught:
     warnings.simplefilter('always')
-    rows = reader.summarize(directory)
-  for warning in caught:  # A damaged file, named (see reader.read).
-    print(f'warning: {warning.message}', file=sys.stderr)
+    try:
+      return function(*args)
+    finally:
+      for warning in caught:
+        print(f'warning: {warning.message}', file=sys.stderr)
+
+
+def _summary(directory: str) -> None:
+  rows = _with_warnings_as_lines(reader.summarize, directory)
   # Violations after the reset, as robel-evaluate counts them.
   print(f'{"episode":>7} {"steps":>6} {"complete":>8} {"success":>7} '
         f'{"return":>10}  pos/vel/cur violations')  # fmt: skip
@@ -54,8 +62,11 @@ def main(argv: Sequence[str] | None = None) -> int:
   arguments = parser.parse_args(argv)
   try:
     if arguments.lerobot:
-      info = lerobot.export(
-        arguments.directory, arguments.lerobot, arguments.lerobot_version
+      info = _with_warnings_as_lines(
+        lerobot.export,
+        arguments.directory,
+        arguments.lerobot,
+        arguments.lerobot_version,
       )
       print(
         f'wrote {arguments.lerobot}: {info["total_episodes"]} episodes, '
