@@ -46,6 +46,13 @@ def _read_errors(pa) -> tuple[type[BaseException], ...]:
           MemoryError)  # fmt: skip
 
 
+def _schema_intact(pa, schema) -> bool:
+  """Whether a schema matches the checksum it carries (one without a
+  checksum cannot be checked, and passes)."""
+  checksum = (schema.metadata or {}).get(SCHEMA_CHECKSUM_KEY)
+  return checksum is None or checksum == schema_checksum(pa, schema)
+
+
 def _check_schema(pa, schema) -> dict[str, Any] | None:
   """Checks an episode file's schema against its checksum and its
   description of its columns.
@@ -58,8 +65,7 @@ def _check_schema(pa, schema) -> dict[str, Any] | None:
     _DamageError: naming what does not fit.
   """
   stored = schema.metadata or {}
-  checksum = stored.get(SCHEMA_CHECKSUM_KEY)
-  if checksum is not None and checksum != schema_checksum(pa, schema):
+  if not _schema_intact(pa, schema):
     raise _DamageError('its schema does not match its checksum')
   for field in schema:
     type_ = field.type
@@ -248,8 +254,7 @@ def describe_columns(path: str | pathlib.Path) -> dict[str, Any]:
       schema = pa.parquet.read_schema(str(path))
   except (OSError, pa.ArrowException) as error:
     raise RecordingError(f'cannot read {path}: {error}') from error
-  checksum = (schema.metadata or {}).get(SCHEMA_CHECKSUM_KEY)
-  if checksum is not None and checksum != schema_checksum(pa, schema):
+  if not _schema_intact(pa, schema):
     raise RecordingError(
       f'{path} is damaged: its schema does not match its checksum'
     )
