@@ -35,7 +35,7 @@ from robel_dm.hardware.dynamixel import control_table as table
 # Wire bytes of one step at 1 Mbps (docs/dynamixel.md section 5): sync-read
 # instruction 14 + N, N status replies of 11 bytes + the state block (goal
 # read-back, current, velocity, position), sync write 14 + 5 N.
-_BAUD = 1_000_000
+_BAUD = table.DEFAULT_BAUD_RATE
 _TASKS = {'dclaw': 'pose_fixed', 'dkitty': 'stand_fixed'}
 
 
@@ -91,7 +91,8 @@ class _Timed:
 def control_loop(device_path: str, robot: str, steps: int) -> dict:
   task = suite.registry.DOMAINS[robot][_TASKS[robot]]()
   standing = (
-    np.array([0, 0, 0.3]), np.array([1.0, 0, 0, 0]), np.zeros(3), np.zeros(3)
+    dkitty.ROBEL_FRAME_ORIGIN, np.array([1.0, 0, 0, 0]), np.zeros(3),
+    np.zeros(3),
   )  # fmt: skip
   env = hardware.make_environment(
     task,

@@ -31,9 +31,15 @@ import time
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from robel_dm import constants  # noqa: E402
+
 CONDITIONS = {  # task, its arguments, agent
   'random': ('pose_random', {}, 'sac'),
-  'noise': ('pose_random', {'observation_noise': 0.05}, 'sac'),
+  'noise': (
+    'pose_random',
+    {'observation_noise': constants.OBSERVATION_NOISE_FRACTION},
+    'sac',
+  ),
   'random_dynamics': ('pose_random_dynamics', {}, 'sac'),
   'asymmetric': ('pose_random_dynamics', {}, 'sac_asymmetric'),
   'privileged': ('pose_random_dynamics', {}, 'sac_privileged'),

@@ -36,9 +36,11 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from robel_dm import recording  # noqa: E402
+from robel_dm import constants, recording  # noqa: E402
+from robel_dm.learning import baselines  # noqa: E402
 
-PERIOD = 0.05  # D'Claw Pose's control period, s.
+PERIOD = constants.CONTROL_TIMESTEP_FAST  # D'Claw Pose's control period, s.
+SOLVED = baselines.PLAN['solved']
 
 
 def _start_bus(dynamics: str | None) -> tuple[subprocess.Popen, str]:
@@ -69,7 +71,8 @@ def _train(device: str, output: pathlib.Path, args, resume: bool):
     sys.executable, '-m', 'robel_dm.commands.train', '--domain=dclaw',
     '--task=pose_fixed', f'--device_path={device}', f'--steps={args.steps}',
     f'--eval_every={args.eval_every}', f'--eval_episodes={args.eval_episodes}',
-    '--stop_at_success=0.8', f'--seed={args.seed}', f'--output_dir={output}',
+    f'--stop_at_success={SOLVED}', f'--seed={args.seed}',
+    f'--output_dir={output}',
     # As measured in docs/robot_training.md: ROBEL's map, no budget.
     '--algo=sac', '--nosafe_defaults',
   ]  # fmt: skip
@@ -146,7 +149,7 @@ def collect(output: pathlib.Path, devices: dict[str, str], args) -> list:
     log = _rows(directory / 'eval.jsonl')
     progress = _rows(directory / 'progress.jsonl')
     solved = next(
-      (row['env_steps'] for row in log if row['success_rate'] >= 0.8), None
+      (row['env_steps'] for row in log if row['success_rate'] >= SOLVED), None
     )
     p50, p99, steps = _jitter(directory / 'recording')
     ticks = [row['timing'] for row in progress if row['timing']]

@@ -16,7 +16,8 @@ with at most 10 violations per episode. With `--init_from` (a run folder,
 `{seed}` replaced by the seed) a run starts from that run's networks, so that
 the budget tightens a policy that already solves the task; its best policy
 within the budget then plays `--test_episodes` episodes seeded apart from
-every other use (the table's included), read once. One JSON line per run,
+the table's and from training's (on Screw Random, seed 0's first 20 are
+also safe_map_shield.py's), read once. One JSON line per run,
 also appended to OUTPUT/results.jsonl; then per budget the means over seeds.
 """
 
@@ -31,10 +32,8 @@ import time
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-SOLVED = 0.8
-SAFE = 10  # Violations per episode, all kinds summed.
 # Apart from training's, its evaluations' and the table's episode seeds.
-TEST_SEED_OFFSET = 8_000_000
+FRONTIER_TEST_SEED = 8_000_000
 
 
 def _violations(row: dict) -> float:
@@ -43,6 +42,7 @@ def _violations(row: dict) -> float:
 
 def run(args, budget: float | None, seed: int) -> dict:
   from robel_dm.learning import training  # noqa: PLC0415
+  from robel_dm.learning.baselines import PLAN  # noqa: PLC0415
 
   domain, task = args.task.split('/')
   config = training.RunConfig(
@@ -51,7 +51,9 @@ def run(args, budget: float | None, seed: int) -> dict:
     seed=seed,
     steps=args.steps,
     eval_every=args.eval_every,
-    eval_episodes=1 if task.endswith('_fixed') else 10,
+    eval_episodes=1
+    if task.endswith('_fixed')
+    else PLAN['eval_episodes_random'],
     safety_budget=budget,
     task_kwargs={'action_map': args.action_map},
     init_from=args.init_from.format(seed=seed) if args.init_from else None,
@@ -67,7 +69,8 @@ def run(args, budget: float | None, seed: int) -> dict:
   safe = [
     row
     for row in history
-    if row['success_rate'] >= SOLVED and _violations(row) <= SAFE
+    if row['success_rate'] >= PLAN['solved']
+    and _violations(row) <= PLAN['safe_violations']
   ]
   row = {
     'task': args.task,
@@ -91,7 +94,7 @@ def _test(args, config, directory: pathlib.Path) -> dict:
   from robel_dm import evaluation, policies  # noqa: PLC0415
   from robel_dm.learning import training  # noqa: PLC0415
 
-  seed = TEST_SEED_OFFSET + config.seed * 10_000
+  seed = FRONTIER_TEST_SEED + config.seed * 10_000
   results = evaluation.evaluate(
     evaluation.EvalConfig(
       config.domain,

@@ -11,8 +11,8 @@ the share of episodes in the band, the success rate
 (mean |angle error| below 0.2 rad), the mean |angle error|, and the valve's
 mean speed over the episode (net turn over 8 s, in the goal's direction),
 for goals turning each way. The default first seed, 1,000,000, is where
-`train`'s evaluation seeds start (the probe's first outputs used it); a
-seed of 7,000,000 or more is apart from every seed the table uses.
+`train`'s evaluation seeds start; a seed of 7,000,000 or more is apart
+from every seed the table uses.
 """
 
 import argparse

@@ -24,6 +24,8 @@ import multiprocessing
 import pathlib
 import time
 
+from robel_dm.learning import baselines
+
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 AGENTS = ('sac_sb3', 'sac')
 # task -> (domain, evaluate every, budget in env steps).
@@ -32,7 +34,7 @@ TASKS = {
   'stand_fixed': ('dkitty', 2_000, 60_000),
   'turn_fixed': ('dclaw', 5_000, 120_000),
 }
-SOLVED = 0.8
+SOLVED = baselines.PLAN['solved']
 
 
 def until_solved(

@@ -42,6 +42,7 @@ def test_a_task_figure_has_log_steps_seed_lines_and_a_caption():
   figure = curves.task_figure(
     {'sac': [_EARLY, _LONG], 'trpo': [_log((0, 0.0), (2_000_000, 0.4))]},
     'dclaw/turn_fixed',
+    0.8,
   )
   try:
     (axis,) = figure.axes
@@ -67,5 +68,7 @@ def test_a_task_figure_has_log_steps_seed_lines_and_a_caption():
 @pytest.mark.slow
 def test_plot_task_writes_a_png(tmp_path):
   output = tmp_path / 'task.png'
-  curves.plot_task({'sac': [_EARLY, _LONG, []]}, output, 'dclaw/turn_fixed')
+  curves.plot_task(
+    {'sac': [_EARLY, _LONG, []]}, output, 'dclaw/turn_fixed', 0.8
+  )
   assert output.read_bytes().startswith(b'\x89PNG')

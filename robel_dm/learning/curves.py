@@ -55,9 +55,8 @@ _CAPTION = (
   'Success of the training evaluations, held from each evaluation to the '
   'next. Thick: mean over seeds; thin: each seed;\nband: worst to best '
   'seed. A seed that stopped (on success, or at its budget) keeps its '
-  'last value to the right edge. Dashed: solved (0.8).'
+  'last value to the right edge. Dashed: solved ({solved}).'
 )
-SOLVED = 0.8
 
 
 def carried_forward(logs: Sequence[list[dict]]) -> tuple[Any, Any]:
@@ -109,13 +108,16 @@ def _to_edge(grid: Any, values: Any, edge: float) -> tuple[Any, Any]:
   return np.append(grid, edge), np.hstack([values, values[:, -1:]])
 
 
-def task_figure(runs: dict[str, Sequence[list[dict]]], title: str) -> Any:
+def task_figure(
+  runs: dict[str, Sequence[list[dict]]], title: str, solved: float
+) -> Any:
   """Success against env steps (log scale), per agent: each seed thin, the
   mean over seeds thick, shaded from the worst seed to the best.
 
   Args:
     runs: agent name -> one evaluation log per seed.
     title: the figure's title.
+    solved: the success rate that solves the task (a dashed line).
 
   Returns:
     The matplotlib Figure; the caller saves and closes it.
@@ -153,7 +155,7 @@ def task_figure(runs: dict[str, Sequence[list[dict]]], title: str) -> Any:
       alpha=0.12,
       linewidth=0,
     )
-  axis.axhline(SOLVED, color='grey', linestyle='--', linewidth=0.9)
+  axis.axhline(solved, color='grey', linestyle='--', linewidth=0.9)
   _log_steps(axis, steps)
   axis.set(
     xlabel='env steps (log scale)',
@@ -164,13 +166,17 @@ def task_figure(runs: dict[str, Sequence[list[dict]]], title: str) -> Any:
   axis.grid(alpha=0.3, which='both')
   if axis.get_legend_handles_labels()[0]:
     axis.legend(fontsize=8, loc='upper left')
-  figure.text(0.5, 0.01, _CAPTION, ha='center', va='bottom', fontsize=7)
+  caption = _CAPTION.format(solved=solved)
+  figure.text(0.5, 0.01, caption, ha='center', va='bottom', fontsize=7)
   figure.tight_layout(rect=(0, 0.08, 1, 1))
   return figure
 
 
 def plot_task(
-  runs: dict[str, Sequence[list[dict]]], output: pathlib.Path, title: str
+  runs: dict[str, Sequence[list[dict]]],
+  output: pathlib.Path,
+  title: str,
+  solved: float,
 ):
   """Writes `task_figure` as a PNG.
 
@@ -178,7 +184,8 @@ def plot_task(
     runs: agent name -> one evaluation log per seed.
     output: the PNG to write.
     title: the figure's title.
+    solved: the success rate that solves the task.
   """
-  figure = task_figure(runs, title)
+  figure = task_figure(runs, title, solved)
   figure.savefig(output, dpi=90)
   _pyplot().close(figure)

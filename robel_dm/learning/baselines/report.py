@@ -497,7 +497,7 @@ def figures(rows: list[dict]) -> list[str]:
   for name, runs in sorted(tasks.items()):
     stem = name.replace('/', '_').replace(' (valve4)', '_valve4')
     path = baselines.FIGURES / f'{stem}.png'
-    curves.plot_task(runs, path, name)
+    curves.plot_task(runs, path, name, baselines.PLAN['solved'])
     written.append(path.name)
   return written
 
