@@ -239,11 +239,13 @@ def test_unknown_domain_raises():
 def test_unknown_task_raises_with_its_name_and_a_hint(domain, typo, task):
   with pytest.raises(ValueError, match=f"'{typo}'") as info:
     suite.load(domain, typo)
-  assert task in str(info.value)
+  assert str(info.value).endswith(f'Did you mean {task!r}?')
 
 
 def test_a_task_of_the_other_domain_is_named_as_such():
-  with pytest.raises(ValueError, match="unknown dkitty task 'turn_fixed'"):
+  with pytest.raises(
+    ValueError, match="unknown dkitty task 'turn_fixed': that task belongs to"
+  ):
     suite.load('dkitty', 'turn_fixed')
   with pytest.raises(ValueError, match='belongs to dkitty') as info:
     suite.load('dclaw', 'walk_fixed')
@@ -290,9 +292,11 @@ def test_positional_arguments_follow_dm_control_suite():
     'dclaw',
     'turn_fixed',
     {'valve': 'valve4'},
-    {'strip_singleton_obs_buffer_dim': True},
+    {'strip_singleton_obs_buffer_dim': False},  # Not the default.
   )
-  assert env.reset().first()
+  timestep = env.reset()
+  assert env.task.valve.variant == 'valve4'
+  assert timestep.observation['claw_qpos'].shape == (1, 9)
   env.close()
   with pytest.raises(TypeError):
     suite.load('dclaw')

@@ -33,14 +33,14 @@ def _outside_random_dynamics(robot: zoo.ZooRobot) -> bool:
 @pytest.mark.parametrize('domain', ['dclaw', 'dkitty'])
 def test_the_zoo_has_five_documented_robots_per_domain(domain):
   robots = zoo.robots(domain)
-  assert len(robots) >= 5
+  assert len(robots) == 5
   for robot in robots:
     values = calibration.load(robot.path)
     assert values.domain == domain
     assert len(robot.about) > 40, robot.name
-  # Partly outside what RandomDynamics trains on: most robots, not all.
+  # Each partly outside what RandomDynamics trains on.
   outside = [r.name for r in robots if _outside_random_dynamics(r)]
-  assert 3 <= len(outside) <= len(robots), outside
+  assert outside == [r.name for r in robots]
 
 
 def test_an_unknown_robot_is_named_with_the_zoo():
