@@ -262,6 +262,9 @@ def test_command_line_errors_are_one_line(tmp_path):
     (['excite', '--domain=dclaw'], 'excite needs --record=DIR'),
     (['excite', f'--record={tmp_path / "r"}', '--joints=FFJ10,XX'],
      "unknown joints ['XX']"),
+    # Before the robot's port is opened (there is none here).
+    (['excite', f'--record={tmp_path / "r"}', '--joints=XX',
+      '--device_path=/dev/robel_dm_none'], "unknown joints ['XX']"),
     (['excite', f'--record={tmp_path / "r"}', '--dynamics=none.json'],
      'no calibration file none.json'),
     (['fit', str(tmp_path), '--domain=dclaw'], 'is not a robel_dm recording'),

@@ -79,6 +79,9 @@ def excite() -> int:
     joints=tuple(FLAGS.joints) if FLAGS.joints else None,
     seed=FLAGS.seed,
   )
+  # The joints are checked before the robot is opened.
+  scene = excitation.JointExcitation(FLAGS.domain, FLAGS.duration)
+  excite_lib.check_joints(sequence, tuple(j.name for j in scene.robot.joints))
   env = suite.load_excitation(
     FLAGS.domain,
     FLAGS.duration,

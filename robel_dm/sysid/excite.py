@@ -77,10 +77,8 @@ def targets(
   Raises:
     ValueError: for a joint name the robot does not have.
   """
+  check_joints(excitation, joint_names)
   chosen = joint_names if excitation.joints is None else excitation.joints
-  unknown = sorted(set(chosen) - set(joint_names))
-  if unknown:
-    raise ValueError(f'unknown joints {unknown}; the robot has {joint_names}')
   mask = np.array([name in chosen for name in joint_names])
   half_range = (high - low) / 2
   amplitude = excitation.amplitude * half_range
@@ -108,6 +106,14 @@ def targets(
     offsets = np.sin(phase[:, None] + shifts[None, :]) * amplitude
   offsets[:, ~mask] = 0.0
   return center + offsets
+
+
+def check_joints(excitation: Excitation, joint_names: tuple[str, ...]) -> None:
+  """Raises ValueError naming the joints to excite that the robot (its
+  `joint_names`) does not have."""
+  unknown = sorted(set(excitation.joints or ()) - set(joint_names))
+  if unknown:
+    raise ValueError(f'unknown joints {unknown}; the robot has {joint_names}')
 
 
 def _check_room(fraction, amplitude, mask, joint_names, center, low, high):
