@@ -26,7 +26,7 @@ import argparse
 
 import numpy as np
 
-from robel_dm import policies, suite
+from robel_dm import geometry, policies, suite
 from robel_dm.entities import dkitty
 
 # ROBEL's D'Claw position-safety margin, rad (5 deg).
@@ -37,7 +37,7 @@ _YAW_LIMIT = 3.14
 _VALVE_LIMIT = 6.28
 
 
-def _center_distance_difference(domain_task, policy_name, weight, hold=None):
+def _center_distance_difference(domain_task, policy_name, hold=None):
   """Per-step cost difference ROBEL minus robel_dm over one episode.
 
   Returns:
@@ -45,6 +45,7 @@ def _center_distance_difference(domain_task, policy_name, weight, hold=None):
     negative: ROBEL's cost is that much larger in magnitude.
   """
   env = suite.load(*domain_task, seed=0)
+  weight = env.task.reward_constants.center_distance_weight
   timestep = env.reset()
   if hold is not None:
     action = env.task.normalize_joint_targets(hold)
@@ -97,7 +98,7 @@ def _orient_long_way_share(episodes):
     yaw = 2 * np.arctan2(z, w)
     target_x, target_y = env.task.target
     target_yaw = np.arctan2(target_y, target_x) - np.pi / 2
-    turn = (target_yaw - yaw + np.pi) % (2 * np.pi) - np.pi
+    turn = geometry.wrap_angle(target_yaw - yaw)
     crossing += abs(yaw + turn) > _YAW_LIMIT
   env.close()
   return crossing / episodes
@@ -147,17 +148,15 @@ def main() -> None:
   print(f'  {"episode":38s} {"mean/step":>10s} {"max/step":>10s} '
         f'{"episode":>10s}')  # fmt: skip
   cases = (
-    ('Stand, holding the crouch', ('dkitty', 'stand_fixed'), None, 2.0,
+    ('Stand, holding the crouch', ('dkitty', 'stand_fixed'), None,
      dkitty.CROUCHED_POSE),
     ('Stand, reference controller', ('dkitty', 'stand_fixed'), 'reference',
-     2.0, None),
+     None),
     ('Orient, holding the standing pose', ('dkitty', 'orient_fixed'), None,
-     4.0, dkitty.STANDING_POSE),
+     dkitty.STANDING_POSE),
   )  # fmt: skip
-  for label, task, policy, weight, hold in cases:
-    mean, largest, total = _center_distance_difference(
-      task, policy, weight, hold
-    )
+  for label, task, policy, hold in cases:
+    mean, largest, total = _center_distance_difference(task, policy, hold)
     print(f'  {label:38s} {mean:10.4f} {largest:10.4f} {total:10.2f}')
 
   print('\nD\'Claw joints > 5 deg beyond their range under random actions '
