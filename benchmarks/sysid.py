@@ -30,9 +30,7 @@ import numpy as np
 
 from robel_dm import calibration, recording, suite
 from robel_dm.sysid import excite, fit
-from robel_dm.tasks import excitation
 
-NOMINAL = {'dclaw': (2.0, 0.1, 0.001), 'dkitty': (5.0, 1.0, 0.001)}
 # Friction loss of the truth's joints, N m: one value, or a range each
 # joint draws its own value from.
 FRICTIONLOSS = {'high': 0.02, 'low': (0.002, 0.004)}
@@ -43,10 +41,9 @@ TOLERANCE = 0.15
 
 
 def _truth(domain: str, seed: int, friction: str) -> calibration.Calibration:
-  names = [
-    joint.name for joint in excitation.JointExcitation(domain, 1.0).robot.joints
-  ]
-  kp, damping, armature = NOMINAL[domain]
+  # The model's values, per joint, drawn around.
+  simulator = fit.ReplaySimulator(domain)
+  names, nominal = simulator.joint_names, simulator.nominal
   rng = np.random.default_rng(seed)
   factors = rng.uniform(0.6, 1.6, (len(names), 3))
   frictionloss = np.broadcast_to(
@@ -57,12 +54,14 @@ def _truth(domain: str, seed: int, friction: str) -> calibration.Calibration:
   )
   joints = {
     name: {
-      'kp': kp * f[0],
-      'damping': damping * f[1],
-      'armature': armature * f[2],
+      'kp': float(nominal['kp'][i] * f[0]),
+      'damping': float(nominal['damping'][i] * f[1]),
+      'armature': float(nominal['armature'][i] * f[2]),
       'frictionloss': float(loss),
     }
-    for name, f, loss in zip(names, factors, frictionloss, strict=True)
+    for i, (name, f, loss) in enumerate(
+      zip(names, factors, frictionloss, strict=True)
+    )
   }
   return calibration.Calibration(domain, joints, control_delay=DELAY)
 
