@@ -17,9 +17,6 @@ at 10 bits per byte, Return Delay Time 0; docs/dynamixel.md section 5).
 """
 
 import argparse
-import contextlib
-import subprocess
-import sys
 import time
 
 import numpy as np
@@ -28,7 +25,7 @@ from robel_dm import suite
 from robel_dm.entities import dkitty
 from robel_dm.hardware import config as config_lib
 from robel_dm.hardware import environment as hardware
-from robel_dm.hardware import options
+from robel_dm.hardware import options, virtual
 from robel_dm.hardware.dynamixel import client as dynamixel
 from robel_dm.hardware.dynamixel import control_table as table
 
@@ -43,20 +40,6 @@ def physical_bus_ms(motors: int) -> float:
   reply = 11 + table.STATE_BLOCK_SIZE
   wire_bytes = (14 + motors) + reply * motors + (14 + 5 * motors)
   return wire_bytes * 10 / _BAUD * 1e3
-
-
-@contextlib.contextmanager
-def virtual_bus(robot: str):
-  process = subprocess.Popen(
-    [sys.executable, '-m', 'robel_dm.commands.virtual_bus',
-     f'--robot={robot}', '--driver=ideal'],
-    stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
-  )  # fmt: skip
-  try:
-    yield process.stdout.readline().strip()
-  finally:
-    process.terminate()
-    process.wait(timeout=10)
 
 
 def bus_time(device_path: str, robot: str, count: int) -> np.ndarray:
@@ -151,7 +134,7 @@ def main():
   )
   for robot in ('dclaw', 'dkitty'):
     motors = len(config_lib.default(robot).joints)
-    with virtual_bus(robot) as device_path:
+    with virtual.standalone_bus(robot, driver='ideal') as device_path:
       bus = bus_time(device_path, robot, args.transactions) * 1e3
       loop = control_loop(device_path, robot, args.steps)
     overhead, jitter = loop['overhead_ms'], loop['jitter_ms']

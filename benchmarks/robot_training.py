@@ -23,6 +23,7 @@ faults it survived, and the run's wall minutes.
 """
 
 import argparse
+import contextlib
 import json
 import os
 import pathlib
@@ -37,33 +38,11 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from robel_dm import constants, recording  # noqa: E402
+from robel_dm.hardware import virtual  # noqa: E402
 from robel_dm.learning import baselines  # noqa: E402
 
 PERIOD = constants.CONTROL_TIMESTEP_FAST  # D'Claw Pose's control period, s.
 SOLVED = baselines.PLAN['solved']
-
-
-def _start_bus(dynamics: str | None) -> tuple[subprocess.Popen, str]:
-  command = [
-    sys.executable,
-    '-m',
-    'robel_dm.commands.virtual_bus',
-    '--robot=dclaw',
-  ]
-  if dynamics:
-    command.append(f'--dynamics={dynamics}')
-  bus = subprocess.Popen(
-    command,
-    cwd=ROOT,
-    stdout=subprocess.PIPE,
-    stderr=subprocess.DEVNULL,
-    text=True,
-    start_new_session=True,
-  )
-  device = bus.stdout.readline().strip()
-  if not device.startswith('/dev/'):
-    raise RuntimeError(f'the virtual bus did not start: {device!r}')
-  return bus, device
 
 
 def _train(device: str, output: pathlib.Path, args, resume: bool):
@@ -240,29 +219,31 @@ def main() -> int:
   os.environ.setdefault('MUJOCO_GL', 'egl')
   output = pathlib.Path(args.output)
   output.mkdir(parents=True, exist_ok=True)
-  buses, runs, killed = {}, {}, {}
-  try:
-    for robot in args.robots.split(','):
-      name = pathlib.Path(robot).stem
-      buses[name] = _start_bus(None if robot == 'default' else robot)
-      runs[name] = _train(buses[name][1], output / name, args, resume=False)
-    if args.kill_at_step:
-      first = next(iter(runs))
-      killed, runs[first] = _kill_and_resume(
-        first, buses[first][1], output, args, runs[first]
-      )
-    for run in runs.values():
-      run.wait()
-    devices = {name: device for name, (_, device) in buses.items()}
-    rows = collect(output, devices, args)
-    report(output, rows, killed)
-    plot(rows, output / 'curves.png')
-  finally:
-    for run in runs.values():
-      if run.poll() is None:
-        os.killpg(run.pid, signal.SIGTERM)
-    for bus, _ in buses.values():
-      os.killpg(bus.pid, signal.SIGTERM)
+  devices, runs, killed = {}, {}, {}
+  # The buses stop when the block ends, after the runs (below).
+  with contextlib.ExitStack() as buses:
+    try:
+      for robot in args.robots.split(','):
+        name = pathlib.Path(robot).stem
+        dynamics = None if robot == 'default' else robot
+        devices[name] = buses.enter_context(
+          virtual.standalone_bus('dclaw', dynamics=dynamics)
+        )
+        runs[name] = _train(devices[name], output / name, args, resume=False)
+      if args.kill_at_step:
+        first = next(iter(runs))
+        killed, runs[first] = _kill_and_resume(
+          first, devices[first], output, args, runs[first]
+        )
+      for run in runs.values():
+        run.wait()
+      rows = collect(output, devices, args)
+      report(output, rows, killed)
+      plot(rows, output / 'curves.png')
+    finally:
+      for run in runs.values():
+        if run.poll() is None:
+          os.killpg(run.pid, signal.SIGTERM)
   return 0
 
 

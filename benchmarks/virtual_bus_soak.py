@@ -23,17 +23,15 @@ Run it on a loaded machine (the load average is printed):
 """
 
 import argparse
-import contextlib
 import logging
 import os
-import subprocess
-import sys
 import time
 
 import numpy as np
 
 from robel_dm import suite
 from robel_dm.hardware import config as config_lib
+from robel_dm.hardware import virtual
 from robel_dm.hardware.dynamixel import client as dynamixel
 
 _TASKS = {'dclaw': 'pose_fixed', 'dkitty': 'stand_fixed'}
@@ -82,26 +80,12 @@ def soak(robot: str, steps: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
   return np.array(stepped), np.array(faulted)
 
 
-@contextlib.contextmanager
-def standalone_bus(robot: str):
-  process = subprocess.Popen(
-    [sys.executable, '-m', 'robel_dm.commands.virtual_bus', f'--robot={robot}',
-     '--driver=sim'],
-    stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
-  )  # fmt: skip
-  try:
-    yield process.stdout.readline().strip()
-  finally:
-    process.terminate()
-    process.wait(timeout=30)
-
-
 def standalone(seconds: float) -> tuple[np.ndarray, list[str]]:
   """Read times (s) of a D'Claw client at 20 Hz, and the errors."""
   ids = config_lib.default('dclaw').joint_ids
   rng = np.random.default_rng(0)
   times, errors = [], []
-  with standalone_bus('dclaw') as device_path:
+  with virtual.standalone_bus('dclaw') as device_path:
     client = dynamixel.DynamixelClient(device_path, ids)
     with client:
       client.set_torque(ids, True)

@@ -17,29 +17,15 @@ as warnings.
 import argparse
 import json
 import pathlib
-import subprocess
 import sys
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
-def _start_bus(domain: str, dynamics: str) -> tuple[subprocess.Popen, str]:
-  bus = subprocess.Popen(
-    [sys.executable, '-m', 'robel_dm.commands.virtual_bus',
-     f'--robot={domain}', f'--dynamics={dynamics}'],
-    cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
-    start_new_session=True,
-  )  # fmt: skip
-  device = bus.stdout.readline().strip()
-  if not device.startswith('/dev/'):
-    bus.terminate()
-    raise RuntimeError(f'the virtual bus did not start: {device!r}')
-  return bus, device
-
-
 def main() -> None:
   from robel_dm import evaluation, policies, suite  # noqa: PLC0415
+  from robel_dm.hardware import virtual  # noqa: PLC0415
   from robel_dm.zoo import transfer  # noqa: PLC0415
 
   parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
@@ -55,8 +41,8 @@ def main() -> None:
   meta = policy.metadata
   domain, task = meta['domain'], transfer.evaluated_task(meta['task'])
   episodes = transfer.EPISODES['fixed' if task.endswith('_fixed') else 'random']
-  bus, device = _start_bus(domain, str(pairing.robot.path))
-  try:
+  dynamics = str(pairing.robot.path)
+  with virtual.standalone_bus(domain, dynamics=dynamics) as device:
     results = evaluation.evaluate(
       evaluation.EvalConfig(
         domain=domain, task=task, episodes=episodes, policy=policy,
@@ -64,9 +50,6 @@ def main() -> None:
         robot=suite.RobotOptions(device),
       )
     )  # fmt: skip
-  finally:
-    bus.terminate()
-    bus.wait(timeout=30)
   real_time = {
     'success': results['success_rate'],
     'violations': sum(results['safety'].values()),

@@ -7,6 +7,7 @@ machine may deschedule the server thread for a while) and lowered to a few
 milliseconds around the calls that are expected to time out.
 """
 
+import os
 import random
 import select
 import signal
@@ -336,7 +337,17 @@ def test_the_command_serves_until_a_stop_signal_then_ends_cleanly(stop):
 
 
 @pytest.mark.slow
-def test_the_command_refuses_a_model_it_does_not_know():
+def test_the_standalone_bus_serves_a_robot_and_refuses_a_model_it_lacks():
+  with virtual.standalone_bus('dclaw', driver='ideal') as device:
+    port = sdk.PortHandler(device)
+    assert port.openPort()
+    model, result, _ = sdk.PacketHandler(2.0).ping(port, 10)
+    port.closePort()
+    assert result == sdk.COMM_SUCCESS and model == 1040
+  assert not os.path.exists(device)  # Stopped: its terminal is gone.
+  bad = virtual.standalone_bus('dclaw', driver='sim', dynamics='none.json')
+  with pytest.raises(RuntimeError, match='did not start'), bad:
+    pass
   result = subprocess.run(
     [*_COMMAND, '--driver=ideal', '--model_number=1060'],
     capture_output=True, text=True, timeout=120,

@@ -114,7 +114,7 @@ def _define_flags():
       'model_number',
       str(DEFAULT_MODEL_NUMBER),
       [str(number) for number in registers.MODEL_DEFAULTS],
-      "Model number of every servo (1030: XM430-W210, ROBEL's).",
+      "Model number of every servo (1040: XH430-V350, ROBEL's).",
     ),
     'dynamics': flags.DEFINE_string(
       'dynamics',

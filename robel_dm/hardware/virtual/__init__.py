@@ -13,7 +13,8 @@ Modules: `servo` (a servo's control table and firmware, on the rules in
 `registers`), `bus` (packet dispatch and the drivers that move the motors),
 `faults` (injected communication failures) and `transport` (the
 pseudo-terminal). `robel-virtual-bus --robot=dclaw`
-serves a robot's motors and prints the device path.
+serves a robot's motors and prints the device path; `standalone_bus`
+starts it for a program and stops it after.
 """
 
 from robel_dm.hardware.virtual.bus import (
@@ -30,7 +31,7 @@ from robel_dm.hardware.virtual.servo import (
   VirtualServo,
   make_servos,
 )
-from robel_dm.hardware.virtual.transport import PtyBusServer
+from robel_dm.hardware.virtual.transport import PtyBusServer, standalone_bus
 
 __all__ = [
   'DEFAULT_FIRMWARE',
@@ -44,4 +45,5 @@ __all__ = [
   'VirtualServo',
   'make_servos',
   'robot_motor_ids',
+  'standalone_bus',
 ]

@@ -12,15 +12,21 @@ how far it has got on the pty itself (`protocol.encode_progress`), where a
 `DynamixelClient` in any process reads it, waits while the bus is behind,
 and calls a motor silent only once the bus has answered everything sent to
 it.
+
+`standalone_bus` runs `robel-virtual-bus` (a `PtyBusServer` in a process of
+its own, in real time, as a robot's USB interface would be) for a program.
 """
 
 import collections
+from collections.abc import Iterator
 import contextlib
 import errno
 import fcntl
 import logging
 import os
 import select
+import subprocess
+import sys
 import termios
 import threading
 import time
@@ -248,3 +254,54 @@ class PtyBusServer:
       if view:
         select.select([], [self._master], [], remaining)
     self.stats['dropped'] += len(view)
+
+
+# How long the bus may take to stop once asked, s.
+_STANDALONE_STOP_TIMEOUT = 30.0
+
+
+@contextlib.contextmanager
+def standalone_bus(
+  robot: str = 'dclaw', driver: str = 'sim', dynamics: str | None = None
+) -> Iterator[str]:
+  """Starts `robel-virtual-bus` and yields its device path.
+
+  Args:
+    robot: 'dclaw' or 'dkitty'.
+    driver: 'sim' (a MuJoCo simulation of the robot, in real time) or
+      'ideal' (every motor at its goal at once).
+    dynamics: a calibration file of the simulated robot (driver 'sim').
+
+  Raises:
+    RuntimeError: if the bus prints no device path (it failed to start).
+  """
+  command = [
+    sys.executable,
+    '-m',
+    'robel_dm.commands.virtual_bus',
+    f'--robot={robot}',
+    f'--driver={driver}',
+  ]
+  if dynamics:
+    command.append(f'--dynamics={dynamics}')
+  # A session of its own: a Ctrl-C meant for the program does not stop the
+  # bus under it; the program stops it on the way out.
+  process = subprocess.Popen(
+    command,
+    stdout=subprocess.PIPE,
+    stderr=subprocess.DEVNULL,
+    text=True,
+    start_new_session=True,
+  )
+  try:
+    device = process.stdout.readline().strip()
+    if not device.startswith('/dev/'):
+      raise RuntimeError(f'the virtual bus did not start: {device!r}')
+    yield device
+  finally:
+    process.terminate()
+    try:
+      process.wait(_STANDALONE_STOP_TIMEOUT)
+    except subprocess.TimeoutExpired:
+      process.kill()
+      process.wait()
