@@ -91,7 +91,7 @@ def _parts(pa, rows, directory: pathlib.Path, repeats: int) -> dict:
     for i in range(0, len(rows), BATCH)
   ]
   table = pa.Table.from_batches(batches)
-  data = (directory / format_lib.CHUNK / 'episode_000000.parquet').read_bytes()
+  data = format_lib.episode_files(directory)[0]['parquet'].read_bytes()
 
   def parquet(checksums: bool) -> None:
     pa.parquet.write_table(table, io.BytesIO(), write_page_checksum=checksums)

@@ -84,11 +84,13 @@ def _record(directory: pathlib.Path, robot: str) -> None:
 
 
 def _files(directory: pathlib.Path) -> dict[str, pathlib.Path]:
-  chunk = directory / 'data/chunk-000'
+  from robel_dm.recording import format as format_lib  # noqa: PLC0415
+
+  files = format_lib.episode_files(directory)
   return {
-    'stream': chunk / 'episode_000001.arrows',
-    'parquet': chunk / 'episode_000000.parquet',
-    'parquet_alone': chunk / 'episode_000000.parquet',
+    'stream': files[1]['arrows'],
+    'parquet': files[0]['parquet'],
+    'parquet_alone': files[0]['parquet'],
   }
 
 
@@ -143,10 +145,12 @@ def _outcome(kind, path, read, messages, reference) -> str:
 
 def _prepare(pristine: pathlib.Path, work: pathlib.Path, kind: str) -> None:
   """`work`, a copy of `pristine` as `kind` needs it."""
+  from robel_dm.recording import format as format_lib  # noqa: PLC0415
+
   shutil.rmtree(work, ignore_errors=True)
   shutil.copytree(pristine, work)
   if kind == 'parquet_alone':
-    (work / 'meta/episodes.jsonl').unlink()
+    (work / format_lib.EPISODES).unlink()
 
 
 def _child(root: pathlib.Path, flips: int, seed: int, robots) -> None:
