@@ -203,9 +203,12 @@ class Environment(composer.Environment):
     delay = control_delay / task.physics_timestep
     self._delay_substeps = round(delay) if 0 <= delay < substeps else -1
     if not 0 <= self._delay_substeps < substeps:  # Also NaN.
+      # A calibration file's delay is named with the file.
+      source = '' if calibration is None else f'{calibration.source}: '
       raise ValueError(
-        f'control_delay must be >= 0 and below one control step '
-        f'({task.control_timestep} s), got {control_delay}'
+        f'{source}control_delay {control_delay} s is not below the control '
+        f'step of {type(task).__name__} ({task.control_timestep} s) or is '
+        'negative'
       )
     self._physics_factory = physics_factory or mjcf.Physics.from_mjcf_model
     super().__init__(task, **kwargs)

@@ -259,12 +259,6 @@ def _environment(
         calibration, domain, robot.joints, robot.actuators
       )
       control_delay = calibration.control_delay
-      if not control_delay < task_instance.control_timestep:
-        raise calibration_lib.CalibrationError(
-          f'{calibration.source}: control_delay {control_delay} s is not '
-          f'below the control step of {type(task_instance).__name__} '
-          f'({task_instance.control_timestep} s)'
-        )
     return Environment(
       task_instance,
       time_limit=time_limit,
