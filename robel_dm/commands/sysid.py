@@ -80,8 +80,7 @@ def excite() -> int:
     seed=FLAGS.seed,
   )
   # The joints are checked before the robot is opened.
-  scene = excitation.JointExcitation(FLAGS.domain, FLAGS.duration)
-  excite_lib.check_joints(sequence, tuple(j.name for j in scene.robot.joints))
+  excite_lib.check_joints(sequence, excitation.JOINT_NAMES[FLAGS.domain])
   env = suite.load_excitation(
     FLAGS.domain,
     FLAGS.duration,

@@ -34,6 +34,8 @@ CENTER_POSE = {
   'dkitty': dkitty.CROUCHED_POSE,
 }
 DOMAINS = tuple(CENTER_POSE)
+# Each robot's joints, in action order (what `--joints` may name).
+JOINT_NAMES = {'dclaw': dclaw.JOINT_NAMES, 'dkitty': dkitty.JOINT_NAMES}
 
 
 def _scene(domain: str) -> tuple[composer.Arena, composer.Robot]:
